@@ -1,0 +1,22 @@
+PY := .venv/bin/python
+VENV_STAMP := .venv/.installed
+
+.PHONY: run test bench clean
+
+$(VENV_STAMP): pyproject.toml
+	test -x $(PY) || python3 -m venv .venv
+	$(PY) -m pip install --upgrade pip
+	$(PY) -m pip install -e '.[test]'
+	touch $(VENV_STAMP)
+
+run: $(VENV_STAMP)
+	bash scripts/run_local.sh
+
+test: $(VENV_STAMP)
+	$(PY) -m pytest -q tests
+
+bench: $(VENV_STAMP)
+	.venv/bin/heartctl bench solver
+
+clean:
+	rm -rf .venv out runs *.egg-info

@@ -1,0 +1,254 @@
+"""Total-Lagrangian residual and consistent tangent of the passive LV (or benchmark) problem:
+Guccione stress, incompressibility (mixed or penalty), follower pressure, supports and the
+rigid-motion gauge. Vectorised over elements and quadrature points; sparsity built once."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from .elements import build_dofmap, cell_quadrature, facet_dofs, facet_quadrature
+from .fidelity import Fidelity
+from .material import FungParameters, green_lagrange, guccione_stress_tangent
+
+_EYE9 = np.eye(9)
+_SYM = 0.5 * (np.einsum("ac,bd->abcd", np.eye(3), np.eye(3)) + np.einsum("ad,bc->abcd", np.eye(3), np.eye(3)))
+
+
+@dataclass(frozen=True)
+class Supports:
+    """Displacement supports: on the dofs of `facets`, the listed components are fixed at zero.
+    With `gauge`, the in-plane rigid motions left free (x, y translation, rotation about z) are
+    removed by three Lagrange multipliers on the mean motion of those dofs."""
+
+    facets: np.ndarray
+    components: tuple[int, ...]
+    gauge: bool = False
+
+
+class SparsityPattern:
+    """COO entries → CSR data positions, built once; assembling is then one bincount."""
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, full_to_reduced: np.ndarray, n_reduced: int):
+        r = full_to_reduced[rows]
+        c = full_to_reduced[cols]
+        self.keep = (r >= 0) & (c >= 0)
+        key = r[self.keep].astype(np.int64) * n_reduced + c[self.keep]
+        uniq, self.position = np.unique(key, return_inverse=True)
+        self.indices = (uniq % n_reduced).astype(np.int32)
+        row_of = uniq // n_reduced
+        self.indptr = np.searchsorted(row_of, np.arange(n_reduced + 1)).astype(np.int32)
+        self.n = n_reduced
+        self.nnz = uniq.size
+
+    def matrix(self, values: np.ndarray) -> sp.csr_matrix:
+        data = np.bincount(self.position, weights=values[self.keep], minlength=self.nnz)
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+
+class MechanicsProblem:
+    """Discrete quasi-static inflation problem on a fixed topology.
+
+    Unknowns z = [u (3 per displacement dof, mm), p (one per vertex, Pa, mixed only), λ (gauge)],
+    with supported components removed. The reference geometry and fibre frames can be replaced
+    (inverse FE moves the reference) without rebuilding the sparsity.
+    """
+
+    def __init__(self, nodes, tets, pressure_facets, supports: Supports, fidelity: Fidelity,
+                 material: FungParameters, frames: np.ndarray):
+        self.tets = np.asarray(tets)
+        self.fidelity = fidelity
+        self.material = material
+        self.supports = supports
+        self.pressure_facets = np.asarray(pressure_facets)
+        self.mixed = fidelity.incompressibility == "mixed"
+        if fidelity.incompressibility not in ("mixed", "penalty"):
+            raise ValueError(f"unknown incompressibility treatment {fidelity.incompressibility!r}")
+        self.fq = facet_quadrature(fidelity.displacement_order, fidelity.facet_quad_degree)
+        self.set_reference(nodes, frames)
+        dm = self.dofmap
+        self.n_u = 3 * dm.n_dofs
+        self.n_p = dm.n_vertices if self.mixed else 0
+        self.cell_udofs = (3 * dm.cell_dofs[:, :, None] + np.arange(3)).reshape(len(self.tets), -1)
+        self.pdofs = facet_dofs(dm, self.pressure_facets)
+        self.facet_udofs = (3 * self.pdofs[:, :, None] + np.arange(3)).reshape(len(self.pdofs), -1)
+        support_dofs = np.unique(facet_dofs(dm, np.asarray(supports.facets)))
+        self.support_dofs = support_dofs
+        fixed = np.zeros(self.n_u + self.n_p, bool)
+        for comp in supports.components:
+            fixed[3 * support_dofs + comp] = True
+        self.n_gauge = 3 if supports.gauge else 0
+        n_full = self.n_u + self.n_p + self.n_gauge
+        fixed = np.concatenate([fixed, np.zeros(self.n_gauge, bool)])
+        self.free = np.flatnonzero(~fixed)
+        self.full_to_reduced = -np.ones(n_full, np.int64)
+        self.full_to_reduced[self.free] = np.arange(self.free.size)
+        self.n_full = n_full
+        self._build_pattern()
+
+    # --- geometry -----------------------------------------------------------------------------
+    def set_reference(self, nodes: np.ndarray, frames: np.ndarray) -> None:
+        """Set the stress-free configuration (vertex coordinates, mm) and fibre frames."""
+        fid = self.fidelity
+        self.nodes = np.asarray(nodes, dtype=float)
+        self.dofmap = build_dofmap(self.nodes, self.tets, fid.displacement_order)
+        self.cq = cell_quadrature(self.nodes, self.tets, fid.displacement_order, fid.quad_degree)
+        if frames.shape[:2] != self.cq.dV.shape:
+            raise ValueError(f"fibre frames {frames.shape[:2]} do not match quadrature {self.cq.dV.shape}")
+        self.frames = frames
+        # M-basis pieces for the rotated tangent: Bsym as a 9×9 matrix in the fibre frame
+        B = self.material.exponent_weights()
+        self._bsym = (B[:, :, None, None] * _SYM).reshape(9, 9)
+        if self.mixed and fid.stabilization > 0:
+            h2 = (6.0 * np.sqrt(2.0) * np.abs(self.cq.volumes)) ** (2.0 / 3.0)
+            mu0 = 0.5 * self.material.stiffness_pa * B.mean()
+            tau = fid.stabilization * h2 / mu0 * np.abs(self.cq.volumes)
+            self._stab = tau[:, None, None] * np.einsum("eaI,ebI->eab", self.cq.p1_grads, self.cq.p1_grads)
+        else:
+            self._stab = None
+        if getattr(self, "n_gauge", 0) or self.supports.gauge:
+            self._gauge_values = self._gauge_rows()
+
+    def _gauge_rows(self) -> np.ndarray:
+        dofs = np.unique(facet_dofs(self.dofmap, np.asarray(self.supports.facets)))
+        X = self.dofmap.points[dofs]
+        c = X.mean(axis=0)
+        w = 1.0 / dofs.size
+        rows = np.concatenate([np.full(dofs.size, 0), np.full(dofs.size, 1), np.full(2 * dofs.size, 2)])
+        cols = np.concatenate([3 * dofs, 3 * dofs + 1, 3 * dofs + 1, 3 * dofs])
+        vals = w * np.concatenate([np.ones(dofs.size), np.ones(dofs.size), X[:, 0] - c[0], -(X[:, 1] - c[1])])
+        self._gauge_cols = cols
+        self._gauge_r = rows
+        return vals
+
+    # --- sparsity ----------------------------------------------------------------------------
+    def _build_pattern(self) -> None:
+        cu = self.cell_udofs
+        nu = cu.shape[1]
+        rows = [np.repeat(cu, nu, axis=1).ravel()]
+        cols = [np.tile(cu, (1, nu)).ravel()]
+        fu = self.facet_udofs
+        nf = fu.shape[1]
+        rows.append(np.repeat(fu, nf, axis=1).ravel())
+        cols.append(np.tile(fu, (1, nf)).ravel())
+        if self.mixed:
+            cp = self.n_u + self.tets
+            up_r = np.repeat(cu, 4, axis=1).ravel()
+            up_c = np.tile(cp, (1, nu)).ravel()
+            rows += [up_r, up_c, np.repeat(cp, 4, axis=1).ravel()]
+            cols += [up_c, up_r, np.tile(cp, (1, 4)).ravel()]
+        if self.n_gauge:
+            g_rows = self.n_u + self.n_p + self._gauge_r
+            rows += [g_rows, self._gauge_cols]
+            cols += [self._gauge_cols, g_rows]
+        self.pattern = SparsityPattern(np.concatenate(rows), np.concatenate(cols), self.full_to_reduced, self.free.size)
+
+    # --- state helpers -----------------------------------------------------------------------
+    def split(self, z_full: np.ndarray):
+        u = z_full[: self.n_u].reshape(-1, 3)
+        p = z_full[self.n_u : self.n_u + self.n_p]
+        return u, p
+
+    def zeros(self) -> np.ndarray:
+        return np.zeros(self.n_full)
+
+    def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
+        ue = u[self.dofmap.cell_dofs]
+        return np.eye(3) + np.einsum("eai,eqaI->eqiI", ue, self.cq.grads)
+
+    def min_jacobian(self, z_full: np.ndarray) -> float:
+        u, _ = self.split(z_full)
+        return float(np.linalg.det(self.deformation_gradient(u)).min())
+
+    # --- assembly ----------------------------------------------------------------------------
+    def assemble(self, z_full: np.ndarray, pressure_pa: float, with_tangent: bool = True):
+        """Reduced residual R (N), reduced tangent K (CSR) and min det F over quadrature points."""
+        u, p = self.split(z_full)
+        cq, fid = self.cq, self.fidelity
+        F = self.deformation_gradient(u)
+        E = green_lagrange(F)
+        R = self.frames
+        E_loc = np.einsum("...Ia,...IJ,...Jb->...ab", R, E, R)
+        S_loc, _ = guccione_stress_tangent(E_loc, self.material, with_tangent=False)
+        BE = self.material.exponent_weights() * E_loc
+        scale = self.material.stiffness_pa * np.exp(np.einsum("...ab,...ab->...", BE, E_loc))
+        S = np.einsum("...Ia,...ab,...Jb->...IJ", R, S_loc, R)
+        P = F @ S
+        J = np.linalg.det(F)
+        Finv = np.linalg.inv(F)
+        cof = J[..., None, None] * np.swapaxes(Finv, -1, -2)
+        dV = cq.dV
+        ne, nq = dV.shape
+        if self.mixed:
+            pq = np.einsum("ec,cq->eq", p[self.tets], cq.lam)
+            vol_coef = pq
+        else:
+            vol_coef = fid.bulk_modulus_pa * (J - 1.0)
+        P_total = P + vol_coef[..., None, None] * cof
+        Ru = np.einsum("eqiI,eqaI,eq->eai", P_total, cq.grads, dV).reshape(ne, -1)
+        full = np.zeros(self.n_full)
+        np.add.at(full, self.cell_udofs.ravel(), Ru.ravel())
+        if self.mixed:
+            inv_k = 0.0 if np.isinf(fid.bulk_modulus_pa) else 1.0 / fid.bulk_modulus_pa
+            Rp = np.einsum("eq,cq,eq->ec", J - 1.0 - inv_k * pq, cq.lam, dV)
+            if self._stab is not None:
+                Rp -= np.einsum("ecd,ed->ec", self._stab, p[self.tets])
+            np.add.at(full, self.n_u + self.tets.ravel(), Rp.ravel())
+        # follower pressure on the loaded surface: + ∫ P n da · δu (n outward from the wall)
+        xf = (self.dofmap.points + u)[self.pdofs]
+        fq = self.fq
+        a1 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 0])
+        a2 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 1])
+        n = np.cross(a1, a2)
+        Rf = pressure_pa * np.einsum("bq,fqi,q->fbi", fq.values, n, fq.weights).reshape(len(xf), -1)
+        np.add.at(full, self.facet_udofs.ravel(), Rf.ravel())
+        if self.n_gauge:
+            lam_g = z_full[self.n_u + self.n_p :]
+            uflat = z_full[: self.n_u]
+            g_off = self.n_u + self.n_p
+            np.add.at(full, g_off + self._gauge_r, self._gauge_values * uflat[self._gauge_cols])
+            np.add.at(full, self._gauge_cols, self._gauge_values * lam_g[self._gauge_r])
+        residual = full[self.free]
+        min_J = float(J.min())
+        if not with_tangent:
+            return residual, None, min_J
+        # material + geometric tangent: A = s (M Bsym M^T) + 2/s vec(P) vec(P)^T + δ_ij S_IJ
+        Fl = F @ R
+        M = np.einsum("eqia,eqIb->eqiIab", Fl, R).reshape(ne, nq, 9, 9)
+        A = scale[..., None, None] * (M @ self._bsym @ np.swapaxes(M, -1, -2))
+        vecP = P.reshape(ne, nq, 9)
+        A += (2.0 / scale)[..., None, None] * vecP[..., :, None] * vecP[..., None, :]
+        A = A.reshape(ne, nq, 3, 3, 3, 3)
+        A += np.einsum("ij,eqIJ->eqiIjJ", np.eye(3), S)
+        dcof = J[..., None, None, None, None] * (
+            np.einsum("...Ii,...Jj->...iIjJ", Finv, Finv) - np.einsum("...Ij,...Ji->...iIjJ", Finv, Finv))
+        A += vol_coef[..., None, None, None, None] * dcof
+        if not self.mixed:
+            A += fid.bulk_modulus_pa * np.einsum("eqiI,eqjJ->eqiIjJ", cof, cof)
+        GA = np.einsum("eqaI,eqiIjJ,eq->eqaijJ", cq.grads, A, dV, optimize=True)
+        Kuu = np.einsum("eqaijJ,eqbJ->eaibj", GA, cq.grads, optimize=True)
+        # pressure-load tangent: d n / d x_c = −ξ1_c [a2]x + ξ2_c [a1]x
+        sk1, sk2 = _skew(a1), _skew(a2)
+        dn = (np.einsum("cq,fqij->fqcij", fq.dxi[:, 1], sk1) - np.einsum("cq,fqij->fqcij", fq.dxi[:, 0], sk2))
+        Kf = pressure_pa * np.einsum("bq,fqcij,q->fbicj", fq.values, dn, fq.weights)
+        values = [Kuu.ravel(), Kf.ravel()]
+        if self.mixed:
+            Kup = np.einsum("eqiI,eqaI,cq,eq->eaic", cof, cq.grads, cq.lam, dV)
+            Kpp = -inv_k * np.einsum("cq,dq,eq->ecd", cq.lam, cq.lam, dV)
+            if self._stab is not None:
+                Kpp = Kpp - self._stab
+            Kup_flat = Kup.reshape(ne, -1, 4)
+            values += [Kup_flat.ravel(), Kup_flat.ravel(), Kpp.ravel()]
+        if self.n_gauge:
+            values += [self._gauge_values, self._gauge_values]
+        K = self.pattern.matrix(np.concatenate(values))
+        return residual, K, min_J
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """[a]x with [a]x v = a × v, for a [..., 3]."""
+    z = np.zeros(a.shape[:-1])
+    return np.stack([np.stack([z, -a[..., 2], a[..., 1]], -1),
+                     np.stack([a[..., 2], z, -a[..., 0]], -1),
+                     np.stack([-a[..., 1], a[..., 0], z], -1)], -2)

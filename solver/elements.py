@@ -1,0 +1,152 @@
+"""Lagrange tetrahedra (P1, P2) on straight-sided meshes: dof numbering, shape functions and
+their reference-configuration gradients at quadrature points, and the matching boundary triangles."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from skfem.mesh import MeshTet, MeshTri  # noqa: F401  (reference cells for quadrature)
+from skfem.quadrature import get_quadrature
+from skfem.refdom import RefTet, RefTri
+
+# local vertex pairs of the six tet edges, in the P2 dof order used below
+TET_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]])
+TRI_EDGES = np.array([[0, 1], [1, 2], [0, 2]])
+
+
+@dataclass(frozen=True)
+class DofMap:
+    """Scalar Lagrange dofs of order 1 or 2 on a tet mesh.
+
+    `points` [ndofs, 3] are dof locations in mm (vertices first, then edge midpoints);
+    `cell_dofs` [ntets, 4|10]; `facet_dofs` [nfacets, 3|6] for the given boundary facets.
+    """
+
+    order: int
+    points: np.ndarray
+    cell_dofs: np.ndarray
+    n_vertices: int
+
+    @property
+    def n_dofs(self) -> int:
+        return self.points.shape[0]
+
+
+def build_dofmap(nodes: np.ndarray, tets: np.ndarray, order: int) -> DofMap:
+    if order == 1:
+        return DofMap(1, nodes.copy(), tets.copy(), nodes.shape[0])
+    if order != 2:
+        raise ValueError(f"element order must be 1 or 2, got {order}")
+    n = nodes.shape[0]
+    pairs = np.sort(tets[:, TET_EDGES], axis=2).reshape(-1, 2)
+    keys = pairs[:, 0].astype(np.int64) * n + pairs[:, 1]
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    edge_nodes = np.stack([uniq // n, uniq % n], axis=1)
+    mid = 0.5 * (nodes[edge_nodes[:, 0]] + nodes[edge_nodes[:, 1]])
+    cell_dofs = np.hstack([tets, n + inverse.reshape(-1, 6)])
+    return DofMap(2, np.vstack([nodes, mid]), cell_dofs, n)
+
+
+def facet_dofs(dofmap: DofMap, facets: np.ndarray) -> np.ndarray:
+    """Dofs of boundary triangles [nf, 3] (vertex indices): vertices, then edges 01, 12, 02."""
+    if dofmap.order == 1:
+        return facets.copy()
+    n = dofmap.n_vertices
+    tets = dofmap.cell_dofs[:, :4]
+    pairs = np.sort(tets[:, TET_EDGES], axis=2).reshape(-1, 2)
+    keys = pairs[:, 0].astype(np.int64) * n + pairs[:, 1]
+    edge_dof = dofmap.cell_dofs[:, 4:].reshape(-1)
+    order = np.argsort(keys)
+    fpairs = np.sort(facets[:, TRI_EDGES], axis=2).reshape(-1, 2)
+    fkeys = fpairs[:, 0].astype(np.int64) * n + fpairs[:, 1]
+    pos = np.searchsorted(keys[order], fkeys)
+    return np.hstack([facets, edge_dof[order[pos]].reshape(-1, 3)])
+
+
+def _tet_shape(order: int, lam: np.ndarray):
+    """Values [nbf, nq] and barycentric derivatives [nbf, 4, nq] of the tet basis at points lam [4, nq]."""
+    nq = lam.shape[1]
+    if order == 1:
+        return lam.copy(), np.broadcast_to(np.eye(4)[:, :, None], (4, 4, nq)).copy()
+    vals = np.zeros((10, nq))
+    dl = np.zeros((10, 4, nq))
+    for a in range(4):
+        vals[a] = lam[a] * (2 * lam[a] - 1)
+        dl[a, a] = 4 * lam[a] - 1
+    for k, (i, j) in enumerate(TET_EDGES):
+        vals[4 + k] = 4 * lam[i] * lam[j]
+        dl[4 + k, i] = 4 * lam[j]
+        dl[4 + k, j] = 4 * lam[i]
+    return vals, dl
+
+
+def _tri_shape(order: int, lam: np.ndarray):
+    """Values [nbf, nq] and barycentric derivatives [nbf, 3, nq] of the triangle basis."""
+    nq = lam.shape[1]
+    if order == 1:
+        return lam.copy(), np.broadcast_to(np.eye(3)[:, :, None], (3, 3, nq)).copy()
+    vals = np.zeros((6, nq))
+    dl = np.zeros((6, 3, nq))
+    for a in range(3):
+        vals[a] = lam[a] * (2 * lam[a] - 1)
+        dl[a, a] = 4 * lam[a] - 1
+    for k, (i, j) in enumerate(TRI_EDGES):
+        vals[3 + k] = 4 * lam[i] * lam[j]
+        dl[3 + k, i] = 4 * lam[j]
+        dl[3 + k, j] = 4 * lam[i]
+    return vals, dl
+
+
+@dataclass(frozen=True)
+class CellQuadrature:
+    """Shape data on the reference (unloaded) configuration at quadrature points.
+
+    values [nbf, nq]; grads [ntets, nq, nbf, 3] (1/mm); dV [ntets, nq] (mm^3, weight × volume);
+    lam [4, nq] barycentric coordinates of the points; p1_grads [ntets, 4, 3] vertex basis gradients.
+    """
+
+    values: np.ndarray
+    grads: np.ndarray
+    dV: np.ndarray
+    lam: np.ndarray
+    p1_grads: np.ndarray
+    volumes: np.ndarray
+
+
+def tet_geometry(nodes: np.ndarray, tets: np.ndarray):
+    """Signed volumes [ntets] (mm^3) and gradients of barycentric coordinates [ntets, 4, 3]."""
+    x = nodes[tets]
+    Jm = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=2)  # columns
+    det = np.linalg.det(Jm)
+    inv = np.linalg.inv(Jm)  # rows: grad of lambda_1..3
+    g = np.empty((tets.shape[0], 4, 3))
+    g[:, 1:] = inv
+    g[:, 0] = -inv.sum(axis=1)
+    return det / 6.0, g
+
+
+def cell_quadrature(nodes: np.ndarray, tets: np.ndarray, order: int, quad_degree: int) -> CellQuadrature:
+    X, W = get_quadrature(RefTet, quad_degree)
+    lam = np.vstack([1 - X.sum(axis=0), X])
+    vals, dl = _tet_shape(order, lam)
+    vol, g = tet_geometry(nodes, tets)
+    grads = np.einsum("alq,elI->eqaI", dl, g)
+    dV = 6.0 * vol[:, None] * W[None, :]
+    return CellQuadrature(vals, grads, dV, lam, g, vol)
+
+
+@dataclass(frozen=True)
+class FacetQuadrature:
+    """Triangle basis values [nbf, nq], parametric derivatives [nbf, 2, nq] and weights [nq]."""
+
+    values: np.ndarray
+    dxi: np.ndarray
+    weights: np.ndarray
+
+
+def facet_quadrature(order: int, quad_degree: int) -> FacetQuadrature:
+    X, W = get_quadrature(RefTri, quad_degree)
+    lam = np.vstack([1 - X.sum(axis=0), X])
+    vals, dl = _tri_shape(order, lam)
+    dxi = np.stack([dl[:, 1] - dl[:, 0], dl[:, 2] - dl[:, 0]], axis=1)
+    return FacetQuadrature(vals, dxi, W)

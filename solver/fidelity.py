@@ -1,0 +1,48 @@
+"""Fidelity presets: element, incompressibility treatment, quadrature and Newton tolerances.
+A case is fully described by (shape, parameters, fidelity), so presets are frozen values."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Fidelity:
+    """How a solve is discretised.
+
+    displacement_order: 1 (linear tets) or 2 (quadratic tets).
+    incompressibility: "mixed" (a P1 pressure field, perturbed Lagrangian J − 1 = p/κ) or
+      "penalty" (U = κ/2 (J − 1)^2, no pressure field).
+    bulk_modulus_pa: κ in Pa; float("inf") makes the mixed form exactly incompressible.
+    stabilization: Brezzi–Pitkäranta factor α for equal-order P1/P1 (adds −α h²/μ0 ∫∇p·∇q).
+    quad_degree / facet_quad_degree: exact polynomial degree of the cell / surface rules.
+    residual_rtol: Newton stops when |R|∞ ≤ rtol · P · (mean endo facet area) and the last
+      update is below increment_tol_mm.
+    """
+
+    name: str
+    displacement_order: int
+    incompressibility: str
+    bulk_modulus_pa: float
+    stabilization: float
+    quad_degree: int
+    facet_quad_degree: int
+    residual_rtol: float = 1e-9
+    increment_tol_mm: float = 1e-7
+    max_newton: int = 12
+    initial_load_step: float = 0.25
+    min_load_step: float = 1e-3
+    inverse_tol_mm: float = 1e-4
+    max_inverse_updates: int = 60
+
+
+PRESETS: dict[str, Fidelity] = {
+    "fast": Fidelity("fast", 1, "mixed", float("inf"), 0.05, 1, 1),
+    "accurate": Fidelity("accurate", 2, "mixed", float("inf"), 0.0, 2, 2),
+}
+
+
+def get_fidelity(name: str) -> Fidelity:
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown fidelity {name!r}; choose one of {', '.join(PRESETS)}") from None

@@ -1,0 +1,141 @@
+"""Forward inflation: Newton–Raphson on the total-Lagrangian problem with adaptive load stepping
+(cut on divergence or det F ≤ 0, grow after easy steps)."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .assembly import MechanicsProblem
+from .linear import SparseSolver
+
+
+class SolveError(RuntimeError):
+    """The nonlinear solve failed; the message gives the load reached, min det F and residual."""
+
+
+@dataclass
+class SolveStats:
+    newton_iterations: int = 0
+    load_steps: int = 0
+    step_cuts: int = 0
+    final_residual: float = float("nan")
+    min_jacobian: float = float("nan")
+    assembly_s: float = 0.0
+    linear_s: float = 0.0
+    wall_s: float = 0.0
+    residual_history: list = field(default_factory=list)
+    newton_iterations_here: int = 0
+
+    def add(self, other: "SolveStats") -> None:
+        self.newton_iterations += other.newton_iterations
+        self.load_steps += other.load_steps
+        self.step_cuts += other.step_cuts
+        self.assembly_s += other.assembly_s
+        self.linear_s += other.linear_s
+        self.wall_s += other.wall_s
+        self.final_residual = other.final_residual
+        self.min_jacobian = other.min_jacobian
+
+
+def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsolve: SparseSolver,
+            stats: SolveStats, force_scale: float):
+    """Newton iterations at a fixed load. Converged when |R|∞ ≤ rtol·force_scale, or when the
+    displacement update is below increment_tol_mm (then the residual is checked once more).
+    Returns (z, converged, reason)."""
+    fid = problem.fidelity
+    free = problem.free
+    n_u_free = np.count_nonzero(free < problem.n_u)
+    r_tol = fid.residual_rtol * force_scale
+    r0 = None
+    rnorm = float("nan")
+    for _ in range(fid.max_newton + 1):
+        t0 = time.perf_counter()
+        R, K, min_J = problem.assemble(z, pressure_pa)
+        stats.assembly_s += time.perf_counter() - t0
+        rnorm = float(np.abs(R).max())
+        stats.residual_history.append(rnorm)
+        if not np.isfinite(rnorm):
+            return z, False, "non-finite residual"
+        if min_J <= 0:
+            return z, False, f"det F ≤ 0 (min {min_J:.3g})"
+        stats.final_residual, stats.min_jacobian = rnorm, min_J
+        if rnorm <= r_tol:
+            return z, True, ""
+        r0 = rnorm if r0 is None else r0
+        if rnorm > 1e4 * max(r0, force_scale):
+            return z, False, f"diverging residual {rnorm:.3g}"
+        if stats.newton_iterations_here >= fid.max_newton:
+            break
+        t0 = time.perf_counter()
+        dz = linsolve.solve(K, -R)
+        stats.linear_s += time.perf_counter() - t0
+        stats.newton_iterations += 1
+        stats.newton_iterations_here += 1
+        if not np.all(np.isfinite(dz)):
+            return z, False, "singular tangent"
+        z = z.copy()
+        z[free] += dz
+        if float(np.abs(dz[:n_u_free]).max()) <= fid.increment_tol_mm:
+            R, _, min_J = problem.assemble(z, pressure_pa, with_tangent=False)
+            rnorm = float(np.abs(R).max())
+            stats.final_residual, stats.min_jacobian = rnorm, min_J
+            if min_J > 0 and rnorm <= max(r_tol, 1e-3 * force_scale):
+                return z, True, ""
+    return z, False, f"no convergence in {fid.max_newton} Newton iterations (|R|∞ {rnorm:.3g})"
+
+
+def force_scale_of(problem: MechanicsProblem, pressure_pa: float) -> float:
+    """Typical nodal force (N·1e-6 in mm·Pa units): pressure × mean loaded facet area."""
+    x = problem.nodes[problem.pressure_facets]
+    area = 0.5 * np.linalg.norm(np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0]), axis=1).mean()
+    return max(abs(pressure_pa) * area, 1e-30)
+
+
+def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None = None,
+            start_load: float = 0.0, first_step: float | None = None,
+            linsolve: SparseSolver | None = None) -> tuple[np.ndarray, SolveStats]:
+    """Quasi-static loading from `start_load`·P (state z0) to P with adaptive load steps.
+
+    Raises SolveError with the reason when the step size collapses."""
+    t_start = time.perf_counter()
+    fid = problem.fidelity
+    linsolve = linsolve or SparseSolver()
+    stats = SolveStats()
+    z = problem.zeros() if z0 is None else z0.copy()
+    load = start_load
+    step = first_step if first_step is not None else fid.initial_load_step
+    step = min(step, 1.0 - load)
+    force_scale = force_scale_of(problem, pressure_pa)
+    z_prev, load_prev = None, None
+    while load < 1.0 - 1e-12:
+        target = min(1.0, load + step)
+        # secant predictor from the last two converged states
+        if z_prev is not None and load > load_prev:
+            guess = z + (z - z_prev) * (target - load) / (load - load_prev)
+        else:
+            guess = z
+        iters_before = stats.newton_iterations
+        stats.newton_iterations_here = 0
+        z_new, ok, reason = _newton(problem, guess, target * pressure_pa, linsolve, stats, force_scale)
+        if not ok and z_prev is not None:
+            stats.newton_iterations_here = 0
+            z_new, ok, reason = _newton(problem, z, target * pressure_pa, linsolve, stats, force_scale)
+        if ok:
+            z_prev, load_prev = z, load
+            z, load = z_new, target
+            stats.load_steps += 1
+            if stats.newton_iterations - iters_before <= 4:
+                step = min(step * 2.0, 1.0)
+            step = min(step, 1.0 - load) if load < 1.0 else step
+        else:
+            stats.step_cuts += 1
+            step *= 0.5
+            if step < fid.min_load_step:
+                stats.wall_s = time.perf_counter() - t_start
+                raise SolveError(f"step size collapsed at {100 * load:.1f}% of load ({reason}; "
+                                 f"min det F {problem.min_jacobian(z):.3g}, |R|∞ {stats.final_residual:.3g})")
+    stats.min_jacobian = problem.min_jacobian(z)
+    stats.wall_s = time.perf_counter() - t_start
+    return z, stats

@@ -1,0 +1,158 @@
+"""The LV tetrahedral mesh as a value: nodes (mm), tets, tagged boundary triangles (endocardium,
+epicardium, base), validation of user meshes and surface tagging of untagged ones."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .elements import tet_geometry
+
+TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward for positive tets
+
+
+class MeshError(ValueError):
+    """A mesh the solver cannot use; the message says what is wrong in one line."""
+
+
+@dataclass(frozen=True)
+class TetMesh:
+    """Linear tetrahedral mesh. nodes [n,3] in mm, tets [m,4] positively oriented;
+    endo/epi/base [k,3] boundary triangles, each oriented with its normal pointing out of the wall."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+    endo: np.ndarray
+    epi: np.ndarray
+    base: np.ndarray
+    info: dict = field(default_factory=dict, compare=False)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.nodes.shape[0]
+
+    def with_nodes(self, nodes: np.ndarray) -> "TetMesh":
+        return replace(self, nodes=np.ascontiguousarray(nodes, dtype=float))
+
+    def base_nodes(self) -> np.ndarray:
+        return np.unique(self.base)
+
+    def endo_nodes(self) -> np.ndarray:
+        return np.unique(self.endo)
+
+    def epi_nodes(self) -> np.ndarray:
+        return np.unique(self.epi)
+
+
+def boundary_facets(tets: np.ndarray) -> np.ndarray:
+    """Triangles on the boundary, oriented outward (tets must be positively oriented)."""
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    key = np.sort(faces, axis=1)
+    _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    return faces[idx[counts == 1]]
+
+
+def scaled_jacobian(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Mean-ratio-like quality in [−1, 1]: 6√2 V / l_rms^3 (1 for a regular tet, ≤ 0 inverted)."""
+    vol, _ = tet_geometry(nodes, tets)
+    x = nodes[tets]
+    edges = np.stack([x[:, j] - x[:, i] for i, j in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]], axis=1)
+    l_rms = np.sqrt((edges**2).sum(axis=2).mean(axis=1))
+    return 6.0 * np.sqrt(2.0) * vol / l_rms**3
+
+
+def orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Reorder each tet's nodes so its volume is positive (for meshes we generate ourselves)."""
+    vol, _ = tet_geometry(nodes, tets)
+    tets = np.array(tets, dtype=np.int64)
+    tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]
+    return tets
+
+
+def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Validate coordinates and connectivity; return tets positively oriented, or raise MeshError."""
+    nodes = np.asarray(nodes, dtype=float)
+    tets = np.asarray(tets)
+    if nodes.ndim != 2 or nodes.shape[1] != 3 or nodes.shape[0] < 4:
+        raise MeshError("mesh needs at least 4 nodes with 3 coordinates")
+    if not np.all(np.isfinite(nodes)):
+        raise MeshError("mesh has NaN or infinite node coordinates")
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
+        raise MeshError("mesh has no tetrahedra (only linear 4-node tets are supported)")
+    if tets.min() < 0 or tets.max() >= nodes.shape[0]:
+        raise MeshError("tet connectivity refers to nodes that do not exist")
+    vol, _ = tet_geometry(nodes, tets)
+    scale = np.ptp(nodes, axis=0).max() ** 3
+    tiny = 1e-12 * scale
+    if np.any(np.abs(vol) <= tiny):
+        raise MeshError(f"mesh has {int(np.sum(np.abs(vol) <= tiny))} degenerate (zero-volume) tets")
+    neg = vol < 0
+    if neg.all():
+        tets = tets[:, [0, 2, 1, 3]]
+    elif neg.any():
+        raise MeshError(f"mesh has {int(neg.sum())} inverted tets (of {len(tets)}); fix the mesh orientation")
+    return np.ascontiguousarray(tets, dtype=np.int64)
+
+
+def _facet_components(facets: np.ndarray) -> np.ndarray:
+    """Label triangles by edge-connected component."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    nf = facets.shape[0]
+    edges = np.sort(np.concatenate([facets[:, [0, 1]], facets[:, [1, 2]], facets[:, [0, 2]]]), axis=1)
+    owner = np.tile(np.arange(nf), 3)
+    key = edges[:, 0].astype(np.int64) * (facets.max() + 1) + edges[:, 1]
+    order = np.argsort(key)
+    same = key[order][1:] == key[order][:-1]
+    a, b = owner[order][:-1][same], owner[order][1:][same]
+    graph = coo_matrix((np.ones(a.size), (a, b)), shape=(nf, nf))
+    return connected_components(graph, directed=False)[1]
+
+
+def tag_surfaces(nodes: np.ndarray, tets: np.ndarray, base_tol_mm: float | None = None):
+    """Find the base plane (the top boundary triangles, normal +z, at max z) and split the rest
+    of the boundary into endocardium (inner component) and epicardium (outer) by connectivity."""
+    facets = boundary_facets(tets)
+    p = nodes[facets]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    z_top = nodes[:, 2].max()
+    tol = base_tol_mm if base_tol_mm is not None else 1e-6 * max(np.ptp(nodes, axis=0).max(), 1.0)
+    is_base = (normal[:, 2] > 0.99) & np.all(np.abs(p[:, :, 2] - z_top) <= tol, axis=1)
+    if not is_base.any():
+        raise MeshError("no base plane found: the base must be a flat cut at the top (max z) of the mesh")
+    rest = facets[~is_base]
+    labels = _facet_components(rest)
+    counts = np.bincount(labels)
+    if counts.size < 2:
+        raise MeshError("could not separate endocardium from epicardium: the wall boundary is one surface")
+    big = np.argsort(counts)[::-1][:2]
+    if counts.size > 2 and counts[np.argsort(counts)[::-1][2]] > 0.05 * counts[big].min():
+        raise MeshError(f"boundary has {counts.size} separate surfaces besides the base; expected endo and epi")
+    extent = [np.ptp(nodes[np.unique(rest[labels == k])], axis=0).prod() for k in big]
+    endo_label, epi_label = (big[0], big[1]) if extent[0] < extent[1] else (big[1], big[0])
+    return rest[labels == endo_label], rest[labels == epi_label], facets[is_base]
+
+
+def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=None, info=None) -> TetMesh:
+    """Validate and assemble a TetMesh; surfaces are found when not given."""
+    tets = check_geometry(nodes, tets)
+    nodes = np.ascontiguousarray(nodes, dtype=float)
+    if endo is None or epi is None or base is None:
+        endo, epi, base = tag_surfaces(nodes, tets)
+    else:
+        outward = {tuple(sorted(f)): f for f in boundary_facets(tets)}
+
+        def orient(faces):
+            faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+            try:
+                return np.array([outward[tuple(sorted(f))] for f in faces], dtype=np.int64).reshape(-1, 3)
+            except KeyError as exc:
+                raise MeshError("a tagged surface triangle is not on the mesh boundary") from exc
+
+        endo, epi, base = orient(endo), orient(epi), orient(base)
+    for name, faces in (("endocardium", endo), ("epicardium", epi), ("base", base)):
+        if len(faces) == 0:
+            raise MeshError(f"mesh has no {name} surface")
+    return TetMesh(nodes, tets, np.asarray(endo), np.asarray(epi), np.asarray(base), dict(info or {}))
