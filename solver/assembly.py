@@ -164,6 +164,10 @@ class MechanicsProblem:
     # --- assembly ----------------------------------------------------------------------------
     def assemble(self, z_full: np.ndarray, pressure_pa: float, with_tangent: bool = True):
         """Reduced residual R (N), reduced tangent K (CSR) and min det F over quadrature points."""
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            return self._assemble(z_full, pressure_pa, with_tangent)
+
+    def _assemble(self, z_full: np.ndarray, pressure_pa: float, with_tangent: bool):
         u, p = self.split(z_full)
         cq, fid = self.cq, self.fidelity
         F = self.deformation_gradient(u)
@@ -191,7 +195,7 @@ class MechanicsProblem:
         np.add.at(full, self.cell_udofs.ravel(), Ru.ravel())
         if self.mixed:
             inv_k = 0.0 if np.isinf(fid.bulk_modulus_pa) else 1.0 / fid.bulk_modulus_pa
-            Rp = np.einsum("eq,cq,eq->ec", J - 1.0 - inv_k * pq, cq.lam, dV)
+            Rp = ((J - 1.0 - inv_k * pq) * dV) @ cq.lam.T
             if self._stab is not None:
                 Rp -= np.einsum("ecd,ed->ec", self._stab, p[self.tets])
             np.add.at(full, self.n_u + self.tets.ravel(), Rp.ravel())
@@ -234,7 +238,8 @@ class MechanicsProblem:
         Kf = pressure_pa * np.einsum("bq,fqcij,q->fbicj", fq.values, dn, fq.weights)
         values = [Kuu.ravel(), Kf.ravel()]
         if self.mixed:
-            Kup = np.einsum("eqiI,eqaI,cq,eq->eaic", cof, cq.grads, cq.lam, dV)
+            cof_grad = np.einsum("eqiI,eqaI->eqai", cof, cq.grads) * dV[:, :, None, None]
+            Kup = np.einsum("eqai,cq->eaic", cof_grad, cq.lam, optimize=True)
             Kpp = -inv_k * np.einsum("cq,dq,eq->ecd", cq.lam, cq.lam, dV)
             if self._stab is not None:
                 Kpp = Kpp - self._stab

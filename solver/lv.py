@@ -1,0 +1,216 @@
+"""LV inflation problems on a tagged mesh: forward (unloaded → loaded), inverse (ED → unloaded by
+backward-displacement fixed point) and the training pair (inverse, then forward). No Ray, Zarr
+or torch here: the orchestrator schedules these functions as they are."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .assembly import MechanicsProblem, Supports
+from .elements import cell_quadrature
+from .fibres import fibre_frames, transmural_coordinate
+from .fidelity import Fidelity, get_fidelity
+from .forward import SolveError, SolveStats, inflate
+from .linear import SparseSolver
+from .material import FungParameters
+from .mesh import MeshError, TetMesh, check_geometry
+from .parameters import CaseParameters
+
+BASE_CONDITIONS = ("sliding", "clamped")
+
+
+def _supports(mesh: TetMesh, base: str) -> Supports:
+    if base == "sliding":
+        return Supports(mesh.base, (2,), gauge=True)
+    if base == "clamped":
+        return Supports(mesh.base, (0, 1, 2), gauge=False)
+    raise ValueError(f"unknown base condition {base!r}; choose {' or '.join(BASE_CONDITIONS)}")
+
+
+def _frames(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity, phi=None) -> np.ndarray:
+    cq_lam = cell_quadrature(mesh.nodes, mesh.tets, fidelity.displacement_order, fidelity.quad_degree).lam
+    return fibre_frames(mesh, params.helix_endo_deg, params.helix_epi_deg, cq_lam, phi)
+
+
+def lv_problem(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str, base: str = "sliding",
+               material: FungParameters | None = None) -> MechanicsProblem:
+    """Fibres are computed on `mesh` (the stress-free configuration) from the Laplace coordinate."""
+    fidelity = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
+    material = material or FungParameters(params.stiffness_pa)
+    return MechanicsProblem(mesh.nodes, mesh.tets, mesh.endo, _supports(mesh, base), fidelity, material,
+                            _frames(mesh, params, fidelity))
+
+
+@dataclass
+class ForwardResult:
+    loaded_nodes: np.ndarray  # [n, 3] mm
+    displacement: np.ndarray  # [n, 3] mm, at the mesh nodes
+    stats: SolveStats
+    state: np.ndarray = field(repr=False, default=None)  # full unknown vector (warm starts)
+
+
+def forward_solve(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
+                  base: str = "sliding", linsolve: SparseSolver | None = None) -> ForwardResult:
+    """Inflate the stress-free `mesh` to ED pressure. Raises SolveError if it does not converge."""
+    problem = lv_problem(mesh, params, fidelity, base)
+    z, stats = inflate(problem, params.pressure_pa, linsolve=linsolve)
+    u = problem.split(z)[0][: mesh.n_nodes]
+    return ForwardResult(mesh.nodes + u, u.copy(), stats, z)
+
+
+@dataclass
+class InverseResult:
+    unloaded_nodes: np.ndarray  # [n, 3] mm
+    mismatch_mm: float  # max nodal |x(X) − x_ED| at exit
+    updates: int
+    stats: SolveStats
+    mismatch_history: list
+
+
+def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
+                  base: str = "sliding", initial_unloaded: np.ndarray | None = None,
+                  tol_mm: float | None = None, linsolve: SparseSolver | None = None) -> InverseResult:
+    """Unloaded geometry X with x(X) = x_ED, by the backward-displacement fixed point
+    X ← X − (x(X) − x_ED), each re-solve warm-started from the previous displacement field.
+
+    Fibres are recomputed on each trial reference (they are defined on the stress-free state),
+    so forward_solve(unloaded) reproduces x_ED. `initial_unloaded` (e.g. from the network) replaces
+    X0 = x_ED. Stops when the max nodal mismatch ≤ tol_mm (fidelity's inverse_tol_mm by default)."""
+    fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
+    tol = fid.inverse_tol_mm if tol_mm is None else tol_mm
+    t_start = time.perf_counter()
+    x_ed = ed_mesh.nodes
+    X = x_ed.copy() if initial_unloaded is None else np.array(initial_unloaded, dtype=float)
+    if X.shape != x_ed.shape or not np.all(np.isfinite(X)):
+        raise ValueError("initial unloaded guess must be finite and have one point per ED node")
+    check_geometry(X, ed_mesh.tets)
+    linsolve = linsolve or SparseSolver()
+    problem = lv_problem(ed_mesh.with_nodes(X), params, fid, base)
+    stats = SolveStats()
+    history: list[float] = []
+    accel = _Anderson(memory=5)
+    n = ed_mesh.n_nodes
+    z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=1e3)
+    stats.add(st)
+    for update in range(fid.max_inverse_updates + 1):
+        mismatch = X + problem.split(z)[0][:n] - x_ed
+        err = float(np.linalg.norm(mismatch, axis=1).max())
+        history.append(err)
+        if err <= tol:
+            stats.wall_s = time.perf_counter() - t_start
+            stats.min_jacobian = problem.min_jacobian(z)
+            return InverseResult(X, err, update, stats, history)
+        if update == fid.max_inverse_updates:
+            break
+        # inexact inner solves: equilibrium ~100× tighter than the current mismatch
+        looseness = float(np.clip(0.01 * err / fid.increment_tol_mm, 1.0, 1e4))
+        z_prev, X_prev = z, X
+        for accelerated in (True, False):
+            X = accel.step(X_prev, mismatch) if accelerated else X_prev - mismatch
+            try:
+                check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
+                problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid))
+                z = _warm_start(problem, z_prev, x_ed)
+                try:
+                    z, st = inflate(problem, params.pressure_pa, z0=z, start_load=1.0,
+                                    linsolve=linsolve, looseness=looseness)
+                except SolveError:
+                    z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=looseness)
+                stats.add(st)
+                break
+            except (SolveError, MeshError):
+                accel.reset()
+                if not accelerated:
+                    raise
+    stats.wall_s = time.perf_counter() - t_start
+    raise SolveError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
+                     f"(mismatch {history[-1]:.3g} mm)")
+
+
+class _Anderson:
+    """Anderson acceleration (type II) of the fixed point X ← X − G(X), G = x(X) − x_ED."""
+
+    def __init__(self, memory: int = 5):
+        self.memory = memory
+        self.reset()
+
+    def reset(self) -> None:
+        self._g, self._f = [], []
+
+    def step(self, X: np.ndarray, G: np.ndarray) -> np.ndarray:
+        g = (X - G).ravel()
+        f = -G.ravel()
+        self._g.append(g)
+        self._f.append(f)
+        if len(self._f) > self.memory + 1:
+            self._g.pop(0)
+            self._f.pop(0)
+        if len(self._f) < 2:
+            return g.reshape(X.shape)
+        dF = np.stack([b - a for a, b in zip(self._f[:-1], self._f[1:])], axis=1)
+        dG = np.stack([b - a for a, b in zip(self._g[:-1], self._g[1:])], axis=1)
+        gamma, *_ = np.linalg.lstsq(dF, f, rcond=1e-10)
+        return (g - dG @ gamma).reshape(X.shape)
+
+
+def _warm_start(problem: MechanicsProblem, z_prev: np.ndarray, x_ed: np.ndarray) -> np.ndarray:
+    """Previous state with the displacement that maps the new reference exactly onto x_ED."""
+    z = z_prev.copy()
+    u = problem.split(z)[0]
+    n = problem.dofmap.n_vertices
+    u[:n] = x_ed - problem.nodes
+    if problem.dofmap.order == 2:
+        edges = _edge_nodes(problem)
+        u[n:] = 0.5 * (x_ed[edges[:, 0]] + x_ed[edges[:, 1]]) - problem.dofmap.points[n:]
+    return z
+
+
+def _edge_nodes(problem: MechanicsProblem) -> np.ndarray:
+    """Vertex pairs of the P2 edge dofs, in dof order."""
+    from .elements import TET_EDGES
+
+    dm = problem.dofmap
+    n = dm.n_vertices
+    pairs = problem.tets[:, TET_EDGES].reshape(-1, 2)
+    dofs = dm.cell_dofs[:, 4:].reshape(-1) - n
+    out = np.empty((dm.n_dofs - n, 2), np.int64)
+    out[dofs] = pairs
+    return out
+
+
+@dataclass
+class Pair:
+    unloaded_nodes: np.ndarray
+    loaded_nodes: np.ndarray
+    inverse: InverseResult
+    forward: ForwardResult
+    stats: dict
+
+
+def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
+              base: str = "sliding", initial_unloaded: np.ndarray | None = None) -> Pair:
+    """A physically consistent training pair: inverse FE on the ED mesh, then forward FE from the
+    unloaded geometry (from scratch, with load stepping). Raises SolveError on failure."""
+    linsolve = SparseSolver()
+    inv = inverse_solve(ed_mesh, params, fidelity, base, initial_unloaded, linsolve=linsolve)
+    fwd = forward_solve(ed_mesh.with_nodes(inv.unloaded_nodes), params, fidelity, base, linsolve=linsolve)
+    if fwd.stats.min_jacobian <= 0 or not np.all(np.isfinite(fwd.loaded_nodes)):
+        raise SolveError("forward solve of the unloaded geometry produced an invalid state")
+    roundtrip = float(np.linalg.norm(fwd.loaded_nodes - ed_mesh.nodes, axis=1).max())
+    stats = {
+        "inverse_updates": inv.updates,
+        "inverse_newton_iterations": inv.stats.newton_iterations,
+        "forward_newton_iterations": fwd.stats.newton_iterations,
+        "forward_load_steps": fwd.stats.load_steps,
+        "inverse_mismatch_mm": inv.mismatch_mm,
+        "roundtrip_error_mm": roundtrip,
+        "final_residual": fwd.stats.final_residual,
+        "min_jacobian": min(inv.stats.min_jacobian, fwd.stats.min_jacobian),
+        "inverse_wall_s": inv.stats.wall_s,
+        "forward_wall_s": fwd.stats.wall_s,
+        "assembly_s": inv.stats.assembly_s + fwd.stats.assembly_s,
+        "linear_s": inv.stats.linear_s + fwd.stats.linear_s,
+    }
+    return Pair(inv.unloaded_nodes, fwd.loaded_nodes, inv, fwd, stats)

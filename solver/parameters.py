@@ -1,0 +1,48 @@
+"""Physiological parameters of one case: ED pressure, Guccione stiffness C, helix angles.
+CLI units (mmHg, Pa, degrees) are kept here; `pressure_pa` converts once."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+MMHG_TO_PA = 133.322387415
+
+PAPER_GRID = {
+    "pressure_mmhg": (4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
+    "stiffness_pa": (50.0, 100.0, 150.0, 200.0, 250.0, 300.0),
+    "helix_endo_deg": (60.0, 65.0, 70.0),
+    "helix_epi_deg": (-60.0, -65.0, -70.0),
+}
+
+
+class ParameterError(ValueError):
+    """A physiological parameter outside what the solver accepts."""
+
+
+@dataclass(frozen=True)
+class CaseParameters:
+    pressure_mmhg: float
+    stiffness_pa: float
+    helix_endo_deg: float
+    helix_epi_deg: float
+
+    def __post_init__(self):
+        for name in ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ParameterError(f"{name} must be a finite number, got {value!r}")
+        if self.pressure_mmhg <= 0:
+            raise ParameterError(f"pressure must be > 0 mmHg, got {self.pressure_mmhg}")
+        if self.stiffness_pa <= 0:
+            raise ParameterError(f"stiffness C must be > 0 Pa, got {self.stiffness_pa}")
+        for name in ("helix_endo_deg", "helix_epi_deg"):
+            if abs(getattr(self, name)) > 90:
+                raise ParameterError(f"{name} must be within ±90°, got {getattr(self, name)}")
+
+    @property
+    def pressure_pa(self) -> float:
+        return self.pressure_mmhg * MMHG_TO_PA
+
+    def label(self) -> str:
+        return (f"P={self.pressure_mmhg:g} mmHg, C={self.stiffness_pa:g} Pa, "
+                f"θendo={self.helix_endo_deg:g}°, θepi={self.helix_epi_deg:g}°")
