@@ -63,8 +63,12 @@ class MechanicsProblem:
         self.supports = supports
         self.pressure_facets = np.asarray(pressure_facets)
         self.mixed = fidelity.incompressibility == "mixed"
+        self.bulk_modulus_pa = fidelity.bulk_ratio * material.stiffness_pa
+        self.penalty_pa = fidelity.penalty_ratio * material.stiffness_pa if self.mixed else 0.0
         if fidelity.incompressibility not in ("mixed", "penalty"):
             raise ValueError(f"unknown incompressibility treatment {fidelity.incompressibility!r}")
+        if not self.mixed and not np.isfinite(self.bulk_modulus_pa):
+            raise ValueError("the penalty form needs a finite bulk_ratio")
         self.fq = facet_quadrature(fidelity.displacement_order, fidelity.facet_quad_degree)
         self.set_reference(nodes, frames)
         dm = self.dofmap
@@ -186,15 +190,15 @@ class MechanicsProblem:
         ne, nq = dV.shape
         if self.mixed:
             pq = np.einsum("ec,cq->eq", p[self.tets], cq.lam)
-            vol_coef = pq
+            vol_coef = pq + self.penalty_pa * (J - 1.0)
         else:
-            vol_coef = fid.bulk_modulus_pa * (J - 1.0)
+            vol_coef = self.bulk_modulus_pa * (J - 1.0)
         P_total = P + vol_coef[..., None, None] * cof
         Ru = np.einsum("eqiI,eqaI,eq->eai", P_total, cq.grads, dV).reshape(ne, -1)
         full = np.zeros(self.n_full)
         np.add.at(full, self.cell_udofs.ravel(), Ru.ravel())
         if self.mixed:
-            inv_k = 0.0 if np.isinf(fid.bulk_modulus_pa) else 1.0 / fid.bulk_modulus_pa
+            inv_k = 0.0 if np.isinf(self.bulk_modulus_pa) else 1.0 / self.bulk_modulus_pa
             Rp = ((J - 1.0 - inv_k * pq) * dV) @ cq.lam.T
             if self._stab is not None:
                 Rp -= np.einsum("ecd,ed->ec", self._stab, p[self.tets])
@@ -228,8 +232,9 @@ class MechanicsProblem:
         dcof = J[..., None, None, None, None] * (
             np.einsum("...Ii,...Jj->...iIjJ", Finv, Finv) - np.einsum("...Ij,...Ji->...iIjJ", Finv, Finv))
         A += vol_coef[..., None, None, None, None] * dcof
-        if not self.mixed:
-            A += fid.bulk_modulus_pa * np.einsum("eqiI,eqjJ->eqiIjJ", cof, cof)
+        penalty = self.penalty_pa if self.mixed else self.bulk_modulus_pa
+        if penalty > 0:
+            A += penalty * np.einsum("eqiI,eqjJ->eqiIjJ", cof, cof)
         GA = np.einsum("eqaI,eqiIjJ,eq->eqaijJ", cq.grads, A, dV, optimize=True)
         Kuu = np.einsum("eqaijJ,eqbJ->eaibj", GA, cq.grads, optimize=True)
         # pressure-load tangent: d n / d x_c = −ξ1_c [a2]x + ξ2_c [a1]x

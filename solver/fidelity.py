@@ -12,7 +12,10 @@ class Fidelity:
     displacement_order: 1 (linear tets) or 2 (quadratic tets).
     incompressibility: "mixed" (a P1 pressure field, perturbed Lagrangian J − 1 = p/κ) or
       "penalty" (U = κ/2 (J − 1)^2, no pressure field).
-    bulk_modulus_pa: κ in Pa; float("inf") makes the mixed form exactly incompressible.
+    bulk_ratio: κ / C, the bulk modulus as a multiple of the stiffness C; float("inf") makes the
+      mixed form exactly incompressible (the penalty form needs a finite value).
+    penalty_ratio: (mixed only) an added κ_pen/2 (J − 1)^2 with κ_pen = penalty_ratio · C; it vanishes
+      when J = 1 and damps the pointwise J oscillations that P2/P1 allows between pressure nodes.
     stabilization: Brezzi–Pitkäranta factor α for equal-order P1/P1 (adds −α h²/μ0 ∫∇p·∇q).
     quad_degree / facet_quad_degree: exact polynomial degree of the cell / surface rules.
     residual_rtol: Newton stops when |R|∞ ≤ rtol · P · (mean endo facet area) and the last
@@ -22,12 +25,13 @@ class Fidelity:
     name: str
     displacement_order: int
     incompressibility: str
-    bulk_modulus_pa: float
+    bulk_ratio: float
     stabilization: float
     quad_degree: int
     facet_quad_degree: int
     residual_rtol: float = 1e-9
     increment_tol_mm: float = 1e-7
+    penalty_ratio: float = 0.0
     max_newton: int = 12
     initial_load_step: float = 0.25
     min_load_step: float = 1e-3
@@ -37,7 +41,7 @@ class Fidelity:
 
 PRESETS: dict[str, Fidelity] = {
     "fast": Fidelity("fast", 1, "mixed", float("inf"), 0.05, 1, 1),
-    "accurate": Fidelity("accurate", 2, "mixed", float("inf"), 0.0, 2, 2),
+    "accurate": Fidelity("accurate", 2, "mixed", float("inf"), 0.0, 2, 2, penalty_ratio=10.0),
 }
 
 

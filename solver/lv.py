@@ -73,7 +73,8 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
                   base: str = "sliding", initial_unloaded: np.ndarray | None = None,
                   tol_mm: float | None = None, linsolve: SparseSolver | None = None) -> InverseResult:
     """Unloaded geometry X with x(X) = x_ED, by the backward-displacement fixed point
-    X ← X − (x(X) − x_ED), each re-solve warm-started from the previous displacement field.
+    X ← X − (x(X) − x_ED) (Anderson-accelerated), each re-solve warm-started from the previous
+    displacement field (which maps the plain update exactly onto x_ED).
 
     Fibres are recomputed on each trial reference (they are defined on the stress-free state),
     so forward_solve(unloaded) reproduces x_ED. `initial_unloaded` (e.g. from the network) replaces
@@ -112,9 +113,8 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
             try:
                 check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
                 problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid))
-                z = _warm_start(problem, z_prev, x_ed)
                 try:
-                    z, st = inflate(problem, params.pressure_pa, z0=z, start_load=1.0,
+                    z, st = inflate(problem, params.pressure_pa, z0=z_prev, start_load=1.0,
                                     linsolve=linsolve, looseness=looseness)
                 except SolveError:
                     z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=looseness)
@@ -153,31 +153,6 @@ class _Anderson:
         dG = np.stack([b - a for a, b in zip(self._g[:-1], self._g[1:])], axis=1)
         gamma, *_ = np.linalg.lstsq(dF, f, rcond=1e-10)
         return (g - dG @ gamma).reshape(X.shape)
-
-
-def _warm_start(problem: MechanicsProblem, z_prev: np.ndarray, x_ed: np.ndarray) -> np.ndarray:
-    """Previous state with the displacement that maps the new reference exactly onto x_ED."""
-    z = z_prev.copy()
-    u = problem.split(z)[0]
-    n = problem.dofmap.n_vertices
-    u[:n] = x_ed - problem.nodes
-    if problem.dofmap.order == 2:
-        edges = _edge_nodes(problem)
-        u[n:] = 0.5 * (x_ed[edges[:, 0]] + x_ed[edges[:, 1]]) - problem.dofmap.points[n:]
-    return z
-
-
-def _edge_nodes(problem: MechanicsProblem) -> np.ndarray:
-    """Vertex pairs of the P2 edge dofs, in dof order."""
-    from .elements import TET_EDGES
-
-    dm = problem.dofmap
-    n = dm.n_vertices
-    pairs = problem.tets[:, TET_EDGES].reshape(-1, 2)
-    dofs = dm.cell_dofs[:, 4:].reshape(-1) - n
-    out = np.empty((dm.n_dofs - n, 2), np.int64)
-    out[dofs] = pairs
-    return out
 
 
 @dataclass
