@@ -1,0 +1,118 @@
+"""Mesh files in and out (any meshio format): unit conversion to and from mm, surface tags,
+and atomic writes (a temporary file renamed into place, so nothing half-written is left)."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from solver.mesh import MeshError, TetMesh, make_mesh
+
+UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+SURFACE_CODES = {"endo": 1, "epi": 2, "base": 3}
+TAG_NAME = "surface"
+
+
+def unit_scale(units: str) -> float:
+    try:
+        return UNIT_TO_MM[units]
+    except KeyError:
+        raise ValueError(f"unknown length unit {units!r}; choose mm, cm or m") from None
+
+
+def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
+    """Read a linear tet mesh; coordinates converted to mm. Surfaces come from a `surface` triangle
+    tag (1 endo, 2 epi, 3 base) when present, otherwise they are found from the geometry."""
+    import meshio
+
+    scale = unit_scale(units)
+    path = Path(path)
+    if not path.is_file():
+        raise MeshError(f"mesh file {path} does not exist")
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises many types for corrupt files
+        raise MeshError(f"cannot read mesh file {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    tets = [c.data for c in m.cells if c.type == "tetra"]
+    if not tets:
+        kinds = ", ".join(sorted({c.type for c in m.cells})) or "none"
+        raise MeshError(f"{path} has no linear tetrahedra (cell types: {kinds})")
+    tets = np.vstack(tets).astype(np.int64)
+    points = np.asarray(m.points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"{path} must have 3-D points")
+    used = np.unique(tets)
+    if used.size != points.shape[0]:  # drop points that belong to no tet
+        remap = -np.ones(points.shape[0], np.int64)
+        remap[used] = np.arange(used.size)
+        points, tets = points[used], remap[tets]
+    else:
+        remap = None
+    surfaces = _tagged_surfaces(m, remap)
+    return make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
+
+
+def _tagged_surfaces(m, remap):
+    if TAG_NAME not in m.cell_data:
+        return None, None, None
+    tris, codes = [], []
+    for block, data in zip(m.cells, m.cell_data[TAG_NAME]):
+        if block.type == "triangle":
+            tris.append(block.data)
+            codes.append(np.asarray(data).ravel())
+    if not tris:
+        return None, None, None
+    tris, codes = np.vstack(tris), np.concatenate(codes)
+    if remap is not None:
+        tris = remap[tris]
+    return tuple(tris[codes == SURFACE_CODES[k]] for k in ("endo", "epi", "base"))
+
+
+def write_mesh(path: str | os.PathLike, mesh: TetMesh, nodes_mm: np.ndarray | None = None,
+               point_data: dict | None = None, cell_data: dict | None = None, units: str = "mm",
+               length_fields: tuple[str, ...] = ()) -> None:
+    """Write tets (+ tagged surface triangles) in `units`; fields named in `length_fields` are
+    converted from mm too. `cell_data` holds per-tet arrays. The write is atomic."""
+    import meshio
+
+    scale = unit_scale(units)
+    nodes = mesh.nodes if nodes_mm is None else nodes_mm
+    point_data = {k: (np.asarray(v) / scale if k in length_fields else np.asarray(v)) for k, v in (point_data or {}).items()}
+    tris = np.vstack([mesh.endo, mesh.epi, mesh.base])
+    codes = np.concatenate([np.full(len(mesh.endo), 1), np.full(len(mesh.epi), 2), np.full(len(mesh.base), 3)])
+    cells = [("tetra", mesh.tets), ("triangle", tris)]
+    cdata = {TAG_NAME: [np.zeros(len(mesh.tets), np.int32), codes.astype(np.int32)]}
+    for k, v in (cell_data or {}).items():
+        v = np.asarray(v)
+        cdata[k] = [v, np.zeros((len(tris),) + v.shape[1:], v.dtype)]
+    out = meshio.Mesh(nodes / scale, cells, point_data=point_data, cell_data=cdata)
+    atomic_write(Path(path), lambda tmp: meshio.write(tmp, out, file_format=_format_of(Path(path))))
+
+
+def _format_of(path: Path) -> str | None:
+    import meshio
+
+    try:
+        return meshio._helpers._filetypes_from_path(path)[0]
+    except Exception:
+        return None
+
+
+def atomic_write(path: Path, writer) -> None:
+    """Call writer(tmp_path) then rename over `path`; on any error the temporary file is removed."""
+    path = Path(path)
+    if path.exists() and path.is_dir():
+        raise ValueError(f"output {path} is a directory")
+    if not path.parent.exists():
+        raise ValueError(f"output folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        writer(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
