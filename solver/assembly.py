@@ -61,7 +61,7 @@ class MechanicsProblem:
         self.fidelity = fidelity
         self.material = material
         self.supports = supports
-        self.pressure_facets = np.asarray(pressure_facets)
+        self.pressure_facets = np.asarray(pressure_facets, dtype=np.int64).reshape(-1, 3)
         self.mixed = fidelity.incompressibility == "mixed"
         self.bulk_modulus_pa = fidelity.bulk_ratio * material.stiffness_pa
         self.penalty_pa = fidelity.penalty_ratio * material.stiffness_pa if self.mixed else 0.0
@@ -76,7 +76,7 @@ class MechanicsProblem:
         self.n_p = dm.n_vertices if self.mixed else 0
         self.cell_udofs = (3 * dm.cell_dofs[:, :, None] + np.arange(3)).reshape(len(self.tets), -1)
         self.pdofs = facet_dofs(dm, self.pressure_facets)
-        self.facet_udofs = (3 * self.pdofs[:, :, None] + np.arange(3)).reshape(len(self.pdofs), -1)
+        self.facet_udofs = (3 * self.pdofs[:, :, None] + np.arange(3)).reshape(len(self.pdofs), 3 * self.pdofs.shape[1])
         support_dofs = np.unique(facet_dofs(dm, np.asarray(supports.facets)))
         self.support_dofs = support_dofs
         fixed = np.zeros(self.n_u + self.n_p, bool)
@@ -209,7 +209,7 @@ class MechanicsProblem:
         a1 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 0])
         a2 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 1])
         n = np.cross(a1, a2)
-        Rf = pressure_pa * np.einsum("bq,fqi,q->fbi", fq.values, n, fq.weights).reshape(len(xf), -1)
+        Rf = pressure_pa * np.einsum("bq,fqi,q->fbi", fq.values, n, fq.weights).reshape(len(xf), self.facet_udofs.shape[1])
         np.add.at(full, self.facet_udofs.ravel(), Rf.ravel())
         if self.n_gauge:
             lam_g = z_full[self.n_u + self.n_p :]

@@ -21,7 +21,7 @@ REFERENCE = {
     "land2": {"endo_apex_z_mm": -26.61, "epi_apex_z_mm": -28.28, "cavity_volume_mm3": 10734.0},
 }
 LAND1_DIVISIONS = {"fast": (40, 4, 4), "accurate": (20, 4, 4)}
-LAND2_NODES = {"fast": 3000, "accurate": 1500}
+LAND2_NODES = {"fast": 3000, "accurate": 1000}
 
 
 def land1(fidelity: Fidelity | str = "accurate", divisions: tuple[int, int, int] | None = None) -> dict:

@@ -31,10 +31,16 @@ def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
+    import contextlib
+    import io
+
+    chatter = io.StringIO()
     try:
-        m = meshio.read(path)
-    except Exception as exc:  # meshio raises many types for corrupt files
-        raise MeshError(f"cannot read mesh file {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+            m = meshio.read(path)
+    except (Exception, SystemExit) as exc:  # meshio raises many types (even SystemExit) for corrupt files
+        reason = " ".join(chatter.getvalue().split()) if isinstance(exc, SystemExit) else str(exc).split("\n")[0]
+        raise MeshError(f"cannot read mesh file {path}: {reason or type(exc).__name__}") from None
     tets = [c.data for c in m.cells if c.type == "tetra"]
     if not tets:
         kinds = ", ".join(sorted({c.type for c in m.cells})) or "none"

@@ -1,0 +1,168 @@
+"""heartctl mesh / solve / unload / verify: round trip through files, units, and every bad input
+(one-line error, exit code 2, no output file); a solve that fails exits 1 with its reason."""
+import json
+
+import meshio
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli import app
+from solver.meshing import mesh_lv
+from solver.shape_model import lv_shape
+from storage.meshfiles import read_mesh, write_mesh
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def lv_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("mesh") / "lv.vtu"
+    result = run("mesh", "--shape", 4, "--nodes", 250, "-o", path)
+    assert result.exit_code == 0, result.output
+    return path
+
+
+def test_mesh_command_writes_tags_and_fibres(lv_file):
+    m = meshio.read(lv_file)
+    assert {"transmural", "helix_angle_deg"} <= set(m.point_data)
+    assert "fibre" in m.cell_data and "surface" in m.cell_data
+    lv = read_mesh(lv_file)
+    assert len(lv.endo) and len(lv.epi) and len(lv.base)
+    assert m.point_data["helix_angle_deg"].max() == pytest.approx(60.0)
+
+
+def test_solve_then_unload_round_trip_in_cm(lv_file, tmp_path):
+    lv = read_mesh(lv_file)
+    cm_file = tmp_path / "lv_cm.vtu"
+    write_mesh(cm_file, lv, units="cm")
+    ed = tmp_path / "ed.vtu"
+    r = run("solve", cm_file, "--pressure", 9, "--stiffness", 120, "--endo", 65, "--epi", -65,
+            "--fidelity", "fast", "--units", "cm", "-o", ed)
+    assert r.exit_code == 0, r.output
+    ed_mesh = meshio.read(ed)
+    assert np.abs(ed_mesh.points).max() < 12  # still in cm
+    disp = ed_mesh.point_data["displacement"]
+    np.testing.assert_allclose(ed_mesh.points - disp, lv.nodes / 10.0, atol=1e-12)
+    unloaded = tmp_path / "unloaded.vtu"
+    r = run("unload", ed, "--pressure", 9, "--stiffness", 120, "--endo", 65, "--epi", -65,
+            "--fidelity", "fast", "--units", "cm", "--method", "fe", "-o", unloaded)
+    assert r.exit_code == 0, r.output
+    back = meshio.read(unloaded).points * 10.0
+    assert np.linalg.norm(back - lv.nodes, axis=1).max() < 1e-3  # mm
+
+
+def test_verify_json_land1():
+    r = run("verify", "--problem", "land1", "--fidelity", "fast", "--json")
+    assert r.exit_code == 0, r.output
+    obj = json.loads(r.output.strip().splitlines()[-1])
+    assert obj["problem"] == "land1" and obj["fidelity"] == "fast" and 3.5 < obj["deflection_z_mm"] < 4.3
+
+
+def _write_bad(tmp_path, kind, lv_file):
+    lv = read_mesh(lv_file)
+    path = tmp_path / f"{kind}.vtu"
+    if kind == "garbage":
+        path.write_bytes(b"\x00not a mesh at all\xff" * 10)
+    elif kind == "triangles":
+        meshio.write(path, meshio.Mesh(lv.nodes, [("triangle", lv.epi)]))
+    elif kind == "inverted":
+        tets = lv.tets.copy()
+        tets[5] = tets[5][[1, 0, 2, 3]]
+        meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    elif kind == "nan":
+        nodes = lv.nodes.copy()
+        nodes[3, 1] = np.nan
+        meshio.write(path, meshio.Mesh(nodes, [("tetra", lv.tets)]))
+    elif kind == "solid":
+        from skfem import MeshTet
+
+        from solver.mesh import orient_positive
+
+        box = MeshTet.init_tensor(*(np.linspace(0, 10, 3),) * 2, np.linspace(-10, 0, 3))
+        meshio.write(path, meshio.Mesh(box.p.T, [("tetra", orient_positive(box.p.T, box.t.T))]))
+    elif kind == "missing":
+        pass
+    return path
+
+
+BAD_MESHES = {
+    "garbage": "cannot read mesh file",
+    "triangles": "no linear tetrahedra",
+    "inverted": "inverted",
+    "nan": "NaN",
+    "solid": "endocardium",
+    "missing": "does not exist",
+}
+
+
+@pytest.mark.parametrize("command", ["solve", "unload"])
+@pytest.mark.parametrize("kind", list(BAD_MESHES))
+def test_bad_mesh_is_rejected(tmp_path, lv_file, command, kind):
+    path = _write_bad(tmp_path, kind, lv_file)
+    out = tmp_path / "out.vtu"
+    r = run(command, path, "--pressure", 8, "--stiffness", 150, "-o", out)
+    assert r.exit_code == 2, r.output
+    assert BAD_MESHES[kind] in r.output
+    assert len(r.output.strip().splitlines()) == 1
+    assert not out.exists() and not list(tmp_path.glob(".out*"))
+
+
+BAD_PARAMS = [
+    (["--pressure", 0, "--stiffness", 150], "pressure must be > 0"),
+    (["--pressure", -3, "--stiffness", 150], "pressure must be > 0"),
+    (["--pressure", 8, "--stiffness", 0], "stiffness C must be > 0"),
+    (["--pressure", 8, "--stiffness", 150, "--endo", 95], "within ±90"),
+    (["--pressure", 8, "--stiffness", 150, "--epi", -120], "within ±90"),
+    (["--pressure", "nan", "--stiffness", 150], "finite"),
+]
+
+
+@pytest.mark.parametrize("args,message", BAD_PARAMS)
+def test_bad_parameters_are_rejected(tmp_path, lv_file, args, message):
+    out = tmp_path / "out.vtu"
+    r = run("solve", lv_file, *args, "-o", out)
+    assert r.exit_code == 2, r.output
+    assert message in r.output
+    assert not out.exists()
+
+
+def test_unknown_fidelity_and_units_are_usage_errors(tmp_path, lv_file):
+    out = tmp_path / "out.vtu"
+    assert run("solve", lv_file, "--pressure", 8, "--stiffness", 150, "--fidelity", "ultra", "-o", out).exit_code == 2
+    assert run("solve", lv_file, "--pressure", 8, "--stiffness", 150, "--units", "inch", "-o", out).exit_code == 2
+    assert not out.exists()
+
+
+def test_solve_that_does_not_converge_exits_1_without_output(tmp_path, lv_file):
+    out = tmp_path / "out.vtu"
+    r = run("solve", lv_file, "--pressure", 1e5, "--stiffness", 50, "--fidelity", "fast", "-o", out)
+    assert r.exit_code == 1, r.output
+    assert "did not converge" in r.output and "% of load" in r.output
+    assert not out.exists()
+
+
+def test_mesh_command_rejects_bad_shape(tmp_path):
+    out = tmp_path / "m.vtu"
+    r = run("mesh", "--shape", -1, "-o", out)
+    assert r.exit_code == 2 and "shape id" in r.output
+    assert not out.exists()
+
+
+def test_output_folder_must_exist(tmp_path, lv_file):
+    r = run("solve", lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "nope" / "out.vtu")
+    assert r.exit_code == 2 and "does not exist" in r.output
+
+
+def test_shape_model_mesh_written_and_read_back_identically(tmp_path):
+    lv = mesh_lv(lv_shape(5), 200)
+    path = tmp_path / "a.vtu"
+    write_mesh(path, lv)
+    back = read_mesh(path)
+    np.testing.assert_array_equal(back.tets, lv.tets)
+    np.testing.assert_allclose(back.nodes, lv.nodes)
+    assert len(back.endo) == len(lv.endo) and len(back.base) == len(lv.base)

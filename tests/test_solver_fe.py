@@ -1,0 +1,150 @@
+"""FE solver: assembled tangent vs finite differences, homogeneous patch test, Land et al. 2015
+problems 1 and 2 (coarse) within documented tolerances, inverse round trips and extreme corners."""
+import dataclasses
+
+import numpy as np
+import pytest
+from skfem import MeshTet
+
+from solver.assembly import MechanicsProblem, Supports
+from solver.benchmarks import land1, land2
+from solver.elements import cell_quadrature
+from solver.fibres import fibre_frames, uniform_frames
+from solver.fidelity import PRESETS, get_fidelity
+from solver.forward import SolveError, inflate
+from solver.lv import forward_solve, inverse_solve, lv_problem, make_pair
+from solver.material import FungParameters, green_lagrange, guccione_stress_tangent
+from solver.mesh import boundary_facets, orient_positive
+from solver.meshing import mesh_lv, mesh_truncated_ellipsoid
+from solver.parameters import CaseParameters
+from solver.shape_model import extreme_shapes, lv_shape
+
+PRESET_NAMES = ["fast", "accurate"]
+
+
+@pytest.fixture(scope="module")
+def coarse_lv():
+    return mesh_lv(lv_shape(2), 250)
+
+
+@pytest.mark.parametrize("preset", PRESET_NAMES)
+@pytest.mark.parametrize("base", ["sliding", "clamped"])
+def test_assembled_tangent_matches_finite_differences(coarse_lv, preset, base):
+    problem = lv_problem(coarse_lv, CaseParameters(10.0, 100.0, 65.0, -65.0), preset, base)
+    rng = np.random.default_rng(3)
+    z = problem.zeros()
+    z[problem.free] = rng.normal(size=problem.free.size)
+    z[: problem.n_u] *= 0.3
+    z[problem.n_u:] *= 50.0
+    z[np.setdiff1d(np.arange(problem.n_full), problem.free)] = 0.0
+    R, K, _ = problem.assemble(z, 1300.0)
+    d = np.zeros(problem.n_full)
+    d[problem.free] = rng.normal(size=problem.free.size)
+    d[: problem.n_u] *= 1e-6
+    d[problem.n_u:] *= 1e-4
+    Rp, _, _ = problem.assemble(z + d, 1300.0, with_tangent=False)
+    Rm, _, _ = problem.assemble(z - d, 1300.0, with_tangent=False)
+    fd = (Rp - Rm) / 2.0
+    an = K @ d[problem.free]
+    assert np.abs(fd - an).max() <= 1e-6 * np.abs(an).max()
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_homogeneous_isochoric_stretch_patch_test(order):
+    """u = (F − I) X with det F = 1: interior nodal forces vanish and the force on x = 1 equals
+    the closed-form first Piola–Kirchhoff traction P_11 · area (fibres along x)."""
+    m = MeshTet.init_tensor(*(np.linspace(0, 1, 4),) * 3)
+    nodes = m.p.T.copy()
+    tets = orient_positive(nodes, m.t.T)
+    facets = boundary_facets(tets)
+    lam = 1.1
+    F = np.diag([lam, lam**-0.5, lam**-0.5])
+    params = FungParameters(150.0)
+    fid = dataclasses.replace(PRESETS["fast"] if order == 1 else PRESETS["accurate"], stabilization=0.0)
+    nq = cell_quadrature(nodes, tets, fid.displacement_order, fid.quad_degree).dV.shape[1]
+    problem = MechanicsProblem(nodes, tets, facets[:0], Supports(facets[:0], ()), fid, params,
+                               uniform_frames(len(tets), nq))
+    z = problem.zeros()
+    X = problem.dofmap.points
+    z[: problem.n_u] = (X @ (F - np.eye(3)).T).ravel()
+    R, _, _ = problem.assemble(z, 0.0, with_tangent=False)
+    force = R[: problem.n_u].reshape(-1, 3)
+    S, _ = guccione_stress_tangent(green_lagrange(F[None]), params, with_tangent=False)
+    P11 = (F @ S[0])[0, 0]
+    interior = np.all((X > 1e-9) & (X < 1 - 1e-9), axis=1)
+    assert np.abs(force[interior]).max() < 1e-9 * abs(P11)
+    on_face = np.abs(X[:, 0] - 1.0) < 1e-9
+    assert force[on_face, 0].sum() == pytest.approx(P11 * 1.0, rel=1e-10)
+
+
+def test_land1_accurate_beam_deflection():
+    """Documented tolerance: accurate (P2/P1, 20×4×4) within 0.05 mm of 4.169 mm (measured −0.015)."""
+    result = land1("accurate")
+    assert abs(result["deflection_z_mm"] - 4.169) < 0.05
+
+
+def test_land1_fast_beam_deflection():
+    """fast (P1/P1, 40×4×4) bends too stiffly (linear tets): documented 4.169 − 0.5 mm < z < 4.169."""
+    result = land1("fast")
+    assert 4.169 - 0.5 < result["deflection_z_mm"] < 4.169
+
+
+def test_coarse_land2_accurate():
+    """Coarse (~370-node) Land problem 2 with accurate: apexes within 0.35 mm (measured 0.26 / 0.20)."""
+    result = land2("accurate", target_nodes=400)
+    assert abs(result["endo_apex_z_mm"] + 26.61) < 0.35
+    assert abs(result["epi_apex_z_mm"] + 28.28) < 0.35
+
+
+@pytest.mark.parametrize("preset", PRESET_NAMES)
+def test_inverse_round_trip_on_coarse_mesh(coarse_lv, preset):
+    params = CaseParameters(10.0, 150.0, 60.0, -60.0)
+    inv = inverse_solve(coarse_lv, params, preset)
+    fwd = forward_solve(coarse_lv.with_nodes(inv.unloaded_nodes), params, preset)
+    assert np.linalg.norm(fwd.loaded_nodes - coarse_lv.nodes, axis=1).max() <= 1e-3
+    shrink = np.linalg.norm(coarse_lv.nodes - inv.unloaded_nodes, axis=1).mean()
+    assert 1.0 < shrink < 15.0  # the unloaded LV is smaller, by mm
+
+
+@pytest.mark.parametrize("shape", extreme_shapes()[:2], ids=["minus2sd", "plus2sd"])
+def test_extreme_corner_converges(shape):
+    """Softest, highest-pressure corner of the paper's box on the ±2 SD shapes (fast, coarse)."""
+    mesh = mesh_lv(shape, 250)
+    pair = make_pair(mesh, CaseParameters(14.0, 50.0, 70.0, -70.0), "fast")
+    assert pair.stats["roundtrip_error_mm"] <= 1e-3
+    assert pair.stats["min_jacobian"] > 0
+
+
+def test_sliding_base_keeps_base_plane_and_removes_rigid_motion(coarse_lv):
+    params = CaseParameters(8.0, 150.0, 60.0, -60.0)
+    result = forward_solve(coarse_lv, params, "fast", "sliding")
+    base = coarse_lv.base_nodes()
+    np.testing.assert_allclose(result.displacement[base, 2], 0.0, atol=1e-12)
+    assert np.abs(result.displacement[base, :2].mean(axis=0)).max() < 1e-9
+    clamped = forward_solve(coarse_lv, params, "fast", "clamped")
+    np.testing.assert_allclose(clamped.displacement[base], 0.0, atol=1e-12)
+
+
+def test_absurd_pressure_fails_with_reason(coarse_lv):
+    fid = dataclasses.replace(get_fidelity("fast"), min_load_step=0.02)
+    problem = lv_problem(coarse_lv, CaseParameters(1e5, 50.0, 60.0, -60.0), fid)
+    with pytest.raises(SolveError, match=r"step size collapsed at .*% of load"):
+        inflate(problem, CaseParameters(1e5, 50.0, 60.0, -60.0).pressure_pa)
+
+
+def test_fibres_follow_the_reference_geometry_in_the_inverse(coarse_lv):
+    """Fibres are defined on the stress-free state: the frames used at the end of the inverse
+    equal the ones a forward solve computes on the unloaded mesh (so round trips are exact)."""
+    params = CaseParameters(6.0, 300.0, 70.0, -60.0)
+    inv = inverse_solve(coarse_lv, params, "fast")
+    unloaded = coarse_lv.with_nodes(inv.unloaded_nodes)
+    lam = cell_quadrature(unloaded.nodes, unloaded.tets, 1, 1).lam
+    frames = fibre_frames(unloaded, 70.0, -60.0, lam)
+    problem = lv_problem(unloaded, params, "fast")
+    np.testing.assert_allclose(problem.frames, frames)
+
+
+def test_truncated_ellipsoid_mesh_for_land2_geometry():
+    m = mesh_truncated_ellipsoid((7.0, 7.0, 17.0), (10.0, 10.0, 20.0), 0.0, 5.0, 300)
+    assert m.nodes[:, 2].max() == pytest.approx(5.0)
+    assert m.nodes[:, 2].min() == pytest.approx(-20.0, abs=0.3)

@@ -1,0 +1,91 @@
+"""Shape model reproducibility and ranges; gmsh meshes: tags, quality, node counts; surface tagging
+of untagged meshes; fibre frames."""
+import numpy as np
+import pytest
+
+from solver.elements import cell_quadrature
+from solver.fibres import fibre_frames, transmural_coordinate
+from solver.mesh import MeshError, boundary_facets, make_mesh, scaled_jacobian
+from solver.meshing import mesh_lv
+from solver.shape_model import MODES, extreme_shapes, lv_shape, shape_coefficients
+
+
+def test_shape_ids_are_reproducible_and_distinct():
+    a, b = shape_coefficients(7, seed=3), shape_coefficients(7, seed=3)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(shape_coefficients(8, seed=3), a)
+    assert not np.allclose(shape_coefficients(7, seed=4), a)
+
+
+def test_coefficients_truncated_and_shapes_in_healthy_ranges():
+    coeffs = np.array([shape_coefficients(i) for i in range(400)])
+    assert np.all(np.abs(coeffs) <= 2.0)
+    assert abs(coeffs.mean()) < 0.15 and 0.75 < coeffs.std() < 1.0  # truncated N(0,1): SD ≈ 0.88
+    for shape in [lv_shape(i) for i in range(200)] + extreme_shapes():
+        assert 80.0 <= shape.cavity_volume_ml() <= 220.0
+        assert 6.0 <= shape.wall_thickness_mm <= 14.0
+        assert shape.apex_thickness_mm < shape.wall_thickness_mm
+    assert len(MODES) >= 6
+
+
+@pytest.fixture(scope="module")
+def default_mesh():
+    return mesh_lv(lv_shape(0))
+
+
+def test_gmsh_mesh_tags_quality_and_size(default_mesh):
+    m = default_mesh
+    assert 600 <= m.n_nodes <= 1000
+    assert m.info["min_scaled_jacobian"] > 0.1
+    assert scaled_jacobian(m.nodes, m.tets).min() > 0.1
+    np.testing.assert_allclose(m.nodes[m.base_nodes(), 2], 0.0, atol=1e-9)
+    assert m.nodes[:, 2].max() == pytest.approx(0.0, abs=1e-9) and m.nodes[:, 2].min() < -40
+    # every boundary triangle carries exactly one tag
+    tagged = np.sort(np.vstack([m.endo, m.epi, m.base]), axis=1)
+    assert len(np.unique(tagged, axis=0)) == len(tagged) == len(boundary_facets(m.tets))
+    # endo lies inside epi
+    r = lambda f: np.linalg.norm(m.nodes[np.unique(f)][:, :2], axis=1).mean()  # noqa: E731
+    assert r(m.endo) < r(m.epi)
+
+
+def test_node_count_follows_target():
+    shape = lv_shape(1)
+    coarse, fine = mesh_lv(shape, 300), mesh_lv(shape, 1500)
+    assert 0.8 * 300 <= coarse.n_nodes <= 1.2 * 300
+    assert 0.8 * 1500 <= fine.n_nodes <= 1.2 * 1500
+
+
+def test_untagged_mesh_is_tagged_like_gmsh(default_mesh):
+    m = default_mesh
+    auto = make_mesh(m.nodes, m.tets)
+    for a, b in ((auto.endo, m.endo), (auto.epi, m.epi), (auto.base, m.base)):
+        assert set(map(tuple, np.sort(a, axis=1))) == set(map(tuple, np.sort(b, axis=1)))
+
+
+def test_solid_without_cavity_has_no_endocardium():
+    from skfem import MeshTet
+
+    box = MeshTet.init_tensor(np.linspace(0, 1, 3), np.linspace(0, 1, 3), np.linspace(-1, 0, 3))
+    from solver.mesh import orient_positive
+
+    nodes = box.p.T
+    with pytest.raises(MeshError, match="endocardium"):
+        make_mesh(nodes, orient_positive(nodes, box.t.T))
+
+
+def test_fibre_frames_orthonormal_with_linear_helix(default_mesh):
+    m = default_mesh
+    phi = transmural_coordinate(m)
+    assert np.all(phi[m.endo_nodes()] == 0) and np.all(phi[m.epi_nodes()] == 1)
+    lam = cell_quadrature(m.nodes, m.tets, 2, 2).lam
+    frames = fibre_frames(m, 60.0, -60.0, lam, phi)
+    gram = np.einsum("eqia,eqib->eqab", frames, frames)
+    np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), atol=1e-12)
+    # helix angle: f · e_l = sin θ with θ linear in φ from +60° (endo) to −60° (epi)
+    from solver.fibres import wall_directions
+
+    t, el, ec = wall_directions(m, phi)
+    phi_q = np.einsum("ea,aq->eq", phi[m.tets], lam)
+    theta = np.deg2rad(60.0 - 120.0 * phi_q)
+    np.testing.assert_allclose(np.einsum("eqi,ei->eq", frames[..., 0], el), np.sin(theta), atol=1e-12)
+    np.testing.assert_allclose(np.einsum("eqi,ei->eq", frames[..., 1], t), 1.0, atol=1e-12)
