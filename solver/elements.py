@@ -26,6 +26,7 @@ class DofMap:
     points: np.ndarray
     cell_dofs: np.ndarray
     n_vertices: int
+    edge_vertices: np.ndarray | None = None  # [n_edges, 2] vertex pair of each edge dof (P2)
 
     @property
     def n_dofs(self) -> int:
@@ -44,7 +45,7 @@ def build_dofmap(nodes: np.ndarray, tets: np.ndarray, order: int) -> DofMap:
     edge_nodes = np.stack([uniq // n, uniq % n], axis=1)
     mid = 0.5 * (nodes[edge_nodes[:, 0]] + nodes[edge_nodes[:, 1]])
     cell_dofs = np.hstack([tets, n + inverse.reshape(-1, 6)])
-    return DofMap(2, np.vstack([nodes, mid]), cell_dofs, n)
+    return DofMap(2, np.vstack([nodes, mid]), cell_dofs, n, edge_nodes)
 
 
 def facet_dofs(dofmap: DofMap, facets: np.ndarray) -> np.ndarray:

@@ -18,6 +18,7 @@ class Fidelity:
       when J = 1 and damps the pointwise J oscillations that P2/P1 allows between pressure nodes.
     stabilization: Brezzi–Pitkäranta factor α for equal-order P1/P1 (adds −α h²/μ0 ∫∇p·∇q).
     quad_degree / facet_quad_degree: exact polynomial degree of the cell / surface rules.
+    coarse_guess: a cheaper preset whose unloaded geometry starts this preset's inverse in pairs.
     residual_rtol: Newton stops when |R|∞ ≤ rtol · P · (mean endo facet area) and the last
       update is below increment_tol_mm.
     """
@@ -32,6 +33,7 @@ class Fidelity:
     residual_rtol: float = 1e-9
     increment_tol_mm: float = 1e-7
     penalty_ratio: float = 0.0
+    coarse_guess: str | None = None
     max_newton: int = 12
     initial_load_step: float = 0.25
     min_load_step: float = 1e-3
@@ -41,7 +43,7 @@ class Fidelity:
 
 PRESETS: dict[str, Fidelity] = {
     "fast": Fidelity("fast", 1, "mixed", float("inf"), 0.05, 1, 1),
-    "accurate": Fidelity("accurate", 2, "mixed", float("inf"), 0.0, 2, 2, penalty_ratio=10.0),
+    "accurate": Fidelity("accurate", 2, "mixed", float("inf"), 0.0, 2, 2, penalty_ratio=10.0, coarse_guess="fast"),
 }
 
 

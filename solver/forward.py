@@ -11,6 +11,7 @@ from .assembly import MechanicsProblem
 from .linear import SparseSolver
 
 
+STALE_TANGENT_RATE = 0.25  # refactorise when a modified-Newton step reduces |R| by less than 4×
 INTERMEDIATE_LOOSENESS = 1e4  # intermediate load steps: |R| ≤ 1e-5 P·area, |Δu| ≤ 1e-3 mm
 
 
@@ -43,45 +44,65 @@ class SolveStats:
 
 
 def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsolve: SparseSolver,
-            stats: SolveStats, force_scale: float, looseness: float = 1.0):
-    """Newton iterations at a fixed load. Converged when |R|∞ ≤ rtol·force_scale, or when the
-    displacement update is below increment_tol_mm (then the residual is checked once more).
-    Returns (z, converged, reason)."""
+            stats: SolveStats, force_scale: float, looseness: float = 1.0, reuse_factor: bool = False):
+    """Newton iterations at a fixed load. With `reuse_factor`, reuse the last factorisation while it still
+    contracts the residual fast (modified Newton) and refactorising otherwise.
+
+    Converged when |R|∞ ≤ rtol·force_scale·looseness, or when a full-Newton update is below
+    increment_tol_mm·looseness (the residual is then checked once more). Returns (z, ok, reason)."""
     fid = problem.fidelity
     free = problem.free
     n_u_free = np.count_nonzero(free < problem.n_u)
     r_tol = fid.residual_rtol * force_scale * looseness
     du_tol = fid.increment_tol_mm * looseness
     r0 = None
+    r_prev = None
     rnorm = float("nan")
+    fresh = False  # does the factorisation belong to the current state's tangent?
+    need_tangent = not (reuse_factor and linsolve.has_factor)
     for _ in range(fid.max_newton + 1):
         t0 = time.perf_counter()
-        R, K, min_J = problem.assemble(z, pressure_pa)
+        R, K, min_J = problem.assemble(z, pressure_pa, with_tangent=need_tangent)
         stats.assembly_s += time.perf_counter() - t0
         rnorm = float(np.abs(R).max())
         stats.residual_history.append(rnorm)
         if not np.isfinite(rnorm):
+            linsolve.forget()
             return z, False, "non-finite residual"
         if min_J <= 0:
+            linsolve.forget()
             return z, False, f"det F ≤ 0 (min {min_J:.3g})"
         stats.final_residual, stats.min_jacobian = rnorm, min_J
         if rnorm <= r_tol:
             return z, True, ""
         r0 = rnorm if r0 is None else r0
         if rnorm > 1e4 * max(r0, force_scale):
+            linsolve.forget()
             return z, False, f"diverging residual {rnorm:.3g}"
+        if not need_tangent and r_prev is not None and rnorm > STALE_TANGENT_RATE * r_prev:
+            # the old tangent contracts too slowly here: refactorise at this state
+            need_tangent = True
+            continue
         if stats.newton_iterations_here >= fid.max_newton:
             break
         t0 = time.perf_counter()
-        dz = linsolve.solve(K, -R)
+        if need_tangent:
+            linsolve.factorize(K)
+            fresh = True
+        else:
+            fresh = False
+        dz = linsolve.solve_factored(-R)
         stats.linear_s += time.perf_counter() - t0
         stats.newton_iterations += 1
         stats.newton_iterations_here += 1
+        need_tangent = not reuse_factor
+        r_prev = rnorm
         if not np.all(np.isfinite(dz)):
+            linsolve.forget()
             return z, False, "singular tangent"
         z = z.copy()
         z[free] += dz
-        if float(np.abs(dz[:n_u_free]).max()) <= du_tol:
+        if fresh and float(np.abs(dz[:n_u_free]).max()) <= du_tol:
             R, _, min_J = problem.assemble(z, pressure_pa, with_tangent=False)
             rnorm = float(np.abs(R).max())
             stats.final_residual, stats.min_jacobian = rnorm, min_J
@@ -99,7 +120,8 @@ def force_scale_of(problem: MechanicsProblem, pressure_pa: float) -> float:
 
 def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None = None,
             start_load: float = 0.0, first_step: float | None = None,
-            linsolve: SparseSolver | None = None, looseness: float = 1.0) -> tuple[np.ndarray, SolveStats]:
+            linsolve: SparseSolver | None = None, looseness: float = 1.0,
+            reuse_factor: bool = False) -> tuple[np.ndarray, SolveStats]:
     """Quasi-static loading from `start_load`·P (state z0) to P with adaptive load steps.
     Intermediate steps are solved to a looser tolerance (INTERMEDIATE_LOOSENESS) than the final
     one; `looseness` scales the final tolerances (inverse FE tightens them as it converges).
@@ -117,7 +139,7 @@ def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None
     z_prev, load_prev = None, None
     if start_load >= 1.0:  # already at full load: correct the given state only
         stats.newton_iterations_here = 0
-        z, ok, reason = _newton(problem, z, pressure_pa, linsolve, stats, force_scale, looseness)
+        z, ok, reason = _newton(problem, z, pressure_pa, linsolve, stats, force_scale, looseness, reuse_factor)
         stats.wall_s = time.perf_counter() - t_start
         if not ok:
             raise SolveError(f"Newton correction at full load failed ({reason})")

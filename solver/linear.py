@@ -1,5 +1,9 @@
 """Sparse direct solves for the Newton systems: MKL PARDISO (pypardiso) when it is installed,
-SciPy's SuperLU otherwise. Both accept the nonsymmetric, indefinite saddle-point tangents."""
+SciPy's SuperLU otherwise. Both accept the nonsymmetric, indefinite saddle-point tangents.
+
+A factorisation is kept after `factorize` so that later right-hand sides (modified Newton) only
+cost a forward/back substitution; PARDISO's symbolic analysis is redone only when the sparsity
+pattern changes."""
 from __future__ import annotations
 
 import numpy as np
@@ -19,9 +23,6 @@ def available_backends() -> list[str]:
 
 
 class SparseSolver:
-    """Factorise-and-solve. With PARDISO the symbolic analysis (ordering) is done once per sparsity
-    pattern and reused by later Newton iterations, which only refactorise."""
-
     def __init__(self, backend: str = "auto"):
         if backend == "auto":
             backend = available_backends()[0]
@@ -30,16 +31,25 @@ class SparseSolver:
         self.backend = backend
         self._pardiso = None
         self._pattern_key = None
+        self._lu = None
+        self._A = None
+        self.factorizations = 0
+        self.solves = 0
 
-    def solve(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
-        if self.backend == "superlu":
-            return splu(A.tocsc(), permc_spec="COLAMD").solve(b)
-        import pypardiso
+    @property
+    def has_factor(self) -> bool:
+        return self._A is not None
 
+    def factorize(self, A: sp.csr_matrix) -> None:
         A = A.tocsr()
         A.sort_indices()
-        b = np.ascontiguousarray(b, dtype=np.float64)
-        key = (A.shape, A.nnz, A.indptr.tobytes().__hash__(), A.indices.tobytes().__hash__())
+        self.factorizations += 1
+        if self.backend == "superlu":
+            self._lu = splu(A.tocsc(), permc_spec="COLAMD")
+            self._A = A
+            return
+        import pypardiso
+
         if self._pardiso is None:
             ps = pypardiso.PyPardisoSolver(mtype=11)
             ps.set_iparm(1, 1)  # use the iparm values set here, not MKL's defaults
@@ -49,15 +59,39 @@ class SparseSolver:
             ps.set_iparm(13, 1)  # weighted matching
             self._pardiso = ps
         ps = self._pardiso
+        key = (A.shape, A.nnz, hash(A.indptr.tobytes()), hash(A.indices.tobytes()))
+        dummy = np.zeros(A.shape[0])
         if key != self._pattern_key:
             ps.set_phase(11)
-            ps._call_pardiso(A, b)
+            ps._call_pardiso(A, dummy)
             self._pattern_key = key
-        ps.set_phase(23)
-        return ps._call_pardiso(A, b).reshape(b.shape)
+        ps.set_phase(22)
+        ps._call_pardiso(A, dummy)
+        self._A = A
+
+    def solve_factored(self, b: np.ndarray) -> np.ndarray:
+        """Solve with the last factorisation (which may belong to an older tangent)."""
+        if self._A is None:
+            raise RuntimeError("no factorisation to solve with")
+        self.solves += 1
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        if self.backend == "superlu":
+            return self._lu.solve(b)
+        self._pardiso.set_phase(33)
+        return self._pardiso._call_pardiso(self._A, b).reshape(b.shape)
+
+    def solve(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+        self.factorize(A)
+        return self.solve_factored(b)
+
+    def forget(self) -> None:
+        """Drop the factorisation (the next Newton iteration refactorises)."""
+        self._A = None
+        self._lu = None
 
     def free(self) -> None:
         if self._pardiso is not None:
             self._pardiso.free_memory(everything=True)
             self._pardiso = None
-            self._pattern_key = None
+        self._pattern_key = None
+        self.forget()
