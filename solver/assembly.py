@@ -177,11 +177,12 @@ class MechanicsProblem:
         F = self.deformation_gradient(u)
         E = green_lagrange(F)
         R = self.frames
-        E_loc = np.einsum("...Ia,...IJ,...Jb->...ab", R, E, R)
+        Rt = np.swapaxes(R, -1, -2)
+        E_loc = Rt @ E @ R
         S_loc, _ = guccione_stress_tangent(E_loc, self.material, with_tangent=False)
         BE = self.material.exponent_weights() * E_loc
         scale = self.material.stiffness_pa * np.exp(np.einsum("...ab,...ab->...", BE, E_loc))
-        S = np.einsum("...Ia,...ab,...Jb->...IJ", R, S_loc, R)
+        S = R @ S_loc @ Rt
         P = F @ S
         J = np.linalg.det(F)
         Finv = np.linalg.inv(F)
@@ -229,9 +230,10 @@ class MechanicsProblem:
         A += (2.0 / scale)[..., None, None] * vecP[..., :, None] * vecP[..., None, :]
         A = A.reshape(ne, nq, 3, 3, 3, 3)
         A += np.einsum("ij,eqIJ->eqiIjJ", np.eye(3), S)
-        dcof = J[..., None, None, None, None] * (
-            np.einsum("...Ii,...Jj->...iIjJ", Finv, Finv) - np.einsum("...Ij,...Ji->...iIjJ", Finv, Finv))
-        A += vol_coef[..., None, None, None, None] * dcof
+        # d(cof F)_iI/dF_jJ = J (F⁻¹_Ii F⁻¹_Jj − F⁻¹_Ij F⁻¹_Ji)
+        FinvT = np.swapaxes(Finv, -1, -2)
+        outer = FinvT[..., :, :, None, None] * FinvT[..., None, None, :, :]
+        A += (vol_coef * J)[..., None, None, None, None] * (outer - np.swapaxes(outer, -4, -2))
         penalty = self.penalty_pa if self.mixed else self.bulk_modulus_pa
         if penalty > 0:
             A += penalty * np.einsum("eqiI,eqjJ->eqiIjJ", cof, cof)
