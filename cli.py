@@ -223,7 +223,273 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
                       str(r["forward_newton"]), f"{r['pair_s']:.2f}",
                       f"{r['pair_assembly_s']:.2f}/{r['pair_linear_s']:.2f}/{r['pair_other_s']:.2f}",
                       str(r["pair_newton"]), f"{r['roundtrip_mm']:.1e}")
-    Console().print(table)
+    Console(width=200).print(table)
+
+
+@bench_app.command("corners")
+def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fidelity"),
+                  nodes: int = typer.Option(800, "--nodes", help="Target mesh node count."),
+                  as_json: bool = typer.Option(False, "--json")):
+    """Round trip solve(unload(x_ED)) at the 8 corners of the paper's box on the 3 extreme shapes."""
+    from solver.benchmark_solver import run_corner_benchmark
+
+    rows = run_corner_benchmark(fidelity.value, nodes)
+    for r in rows:
+        if as_json:
+            typer.echo(json.dumps(r))
+        elif r["ok"]:
+            typer.echo(f"shape {r['shape']:>2} P={r['pressure_mmhg']:>4g} C={r['stiffness_pa']:>3g} θ=±{r['helix_deg']:g}: "
+                       f"round trip {r['roundtrip_mm']:.1e} mm, {r['newton']} Newton, min J {r['min_jacobian']:.3f}, {r['wall_s']:.1f} s")
+        else:
+            typer.echo(f"shape {r['shape']:>2} P={r['pressure_mmhg']:>4g} C={r['stiffness_pa']:>3g} θ=±{r['helix_deg']:g}: FAILED {r['reason']}")
+    ok = [r for r in rows if r["ok"]]
+    worst = max((r["roundtrip_mm"] for r in ok), default=float("nan"))
+    typer.echo(f"{fidelity.value}: {len(ok)}/{len(rows)} corners converged; worst round trip {worst:.1e} mm "
+               f"(goal ≤ 1e-3 mm); {sum(r['wall_s'] for r in rows):.0f} s in all")
+
+
+# --- data generation (issue 3) ---
+
+
+def _store_errors():
+    from storage.store import StoreError
+
+    return (StoreError, ValueError, FileNotFoundError, NotADirectoryError)
+
+
+@app.command()
+def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes (default 60, the paper's; or the store's)."),
+             store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL (s3://…)."),
+             pressures: str = typer.Option(None, "--pressures", help="ED pressures, mmHg, comma-separated (default 4,6,…,14)."),
+             stiffness: str = typer.Option(None, "--stiffness", help="Stiffness C, Pa, comma-separated (default 50,100,…,300)."),
+             endo: str = typer.Option(None, "--endo", help="Endocardial helix angles, degrees (default 60,65,70)."),
+             epi: str = typer.Option(None, "--epi", help="Epicardial helix angles, degrees (default −60,−65,−70; write --epi=-60,-65)."),
+             fidelity: str = typer.Option(None, "--fidelity", help="Solver preset: fast | accurate (default accurate)."),
+             seed: int = typer.Option(None, "--seed", help="Shape-model seed (default 0)."),
+             nodes: int = typer.Option(None, "--nodes", help="Target mesh node count (default 800; --local 350)."),
+             address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT (default: start a local Ray on all cores)."),
+             num_cpus: int = typer.Option(None, "--num-cpus", help="CPUs of the local Ray (default: all cores; --local 2)."),
+             local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
+             dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cases, core-hours from a calibration solve) and exit."),
+             retry_failed: bool = typer.Option(False, "--retry-failed", help="Also rerun cases recorded as failed."),
+             max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × CPUs)."),
+             as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
+    """Generate FE pairs (inverse + forward) over shapes × P × C × θendo × θepi into a Zarr store, on Ray.
+    Rerunning on the same store resumes it."""
+    from orchestrator.grid import AXIS_FLAGS, parse_axis, resolve_spec
+    from orchestrator.sweep import check_request
+    from storage.store import inspect_store
+
+    try:
+        if num_cpus is not None and num_cpus < 1:
+            raise ValueError(f"--num-cpus must be ≥ 1, got {num_cpus}")
+        if max_in_flight is not None and max_in_flight < 1:
+            raise ValueError(f"--max-in-flight must be ≥ 1, got {max_in_flight}")
+        if address is not None and local:
+            raise ValueError("--local starts its own two-core Ray; it does not take --address")
+        if address is not None and num_cpus is not None:
+            raise ValueError("--num-cpus sizes a local Ray; a cluster joined with --address has its own CPUs")
+        explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes}
+        for axis, text in zip(AXIS_FLAGS, (pressures, stiffness, endo, epi)):
+            explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
+        stored = inspect_store(store)
+        spec = resolve_spec(explicit, local=local, stored_attrs=stored)
+        stored = check_request(spec, store)
+    except _store_errors() as exc:
+        fail(str(exc))
+    if dry_run:
+        from orchestrator.plan import cluster_cores, make_plan
+
+        cores = num_cpus or (2 if local else cluster_cores())
+        plan = make_plan(spec, store, stored, cores=cores)
+        if as_json:
+            typer.echo(json.dumps(plan, default=str))
+            return
+        _print_plan(plan)
+        return
+    from orchestrator.sweep import init_ray, remaining_cases, run_sweep
+
+    if stored is not None:
+        left = remaining_cases(spec, store, retry_failed)
+        if left["to_run"] == 0:
+            typer.echo(f"{store}: nothing to run — {left['done']} done, {left['failed']} failed of {spec.n_cases}"
+                       + (" (--retry-failed reruns the failed ones)" if left["failed"] else ""))
+            return
+    try:
+        init_ray(address=address, num_cpus=num_cpus or (2 if local else None), local=local)
+    except (ConnectionError, ValueError, RuntimeError) as exc:
+        fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}")
+    import ray
+
+    try:
+        report = run_sweep(spec, store, max_in_flight=max_in_flight, retry_failed=retry_failed,
+                           progress=not as_json)
+    except _store_errors() as exc:
+        ray.shutdown()
+        fail(str(exc))
+    except KeyboardInterrupt:
+        ray.shutdown()
+        fail("interrupted; done cases are kept, rerun the same command to resume", code=130)
+    ray.shutdown()
+    if as_json:
+        typer.echo(json.dumps(report.as_dict()))
+        return
+    rate = report.throughput
+    typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_before + report.failed} failed "
+               f"of {report.total} ({report.done} done and {report.failed} failed in this run, "
+               f"{report.submitted} submitted); meshing {report.phase1_s:.1f} s, pairs {report.phase2_s:.1f} s "
+               f"on {report.cpus:g} CPUs ({rate:.2f} cases/s)" if report.submitted else
+               f"{store}: nothing to run — {report.done_before} done, {report.failed_before} failed of {report.total}")
+
+
+def _print_plan(plan: dict) -> None:
+    g = plan["grid"]
+    axes = " × ".join(f"{len(g[a])} {n}" for a, n in (("pressure_mmhg", "P"), ("stiffness_pa", "C"),
+                                                      ("helix_endo_deg", "θendo"), ("helix_epi_deg", "θepi")))
+    typer.echo(f"plan for {plan['store']} ({'resume' if plan['resume'] else 'new store'}): {plan['shapes']} shapes × "
+               f"{axes} = {plan['cases']} cases; {plan['done']} done, {plan['failed']} failed, {plan['to_run']} to run")
+    typer.echo(f"fidelity {plan['fidelity']}, seed {plan['seed']}, ~{plan['mesh_nodes']} nodes per mesh")
+    cal = plan.get("calibration")
+    if cal:
+        p = cal["params"]
+        status = "ok" if cal["ok"] else f"FAILED: {cal['reason']}"
+        typer.echo(f"calibration: shape 0 ({cal['nodes']} nodes) meshed in {cal['mesh_s']:.1f} s; one pair at "
+                   f"P={p[0]:g} mmHg, C={p[1]:g} Pa, θ={p[2]:g}/{p[3]:g}° took {cal['pair_s']:.2f} s on 1 core ({status})")
+        typer.echo(f"estimate: {plan['core_hours']:.2f} core-hours"
+                   + (f", {plan['wall_hours_at_cores'] * 60:.1f} min wall on {plan['cores']} cores" if plan.get("cores") else "")
+                   + f"; store ≈ {plan['store_bytes_estimate'] / 1e6:.0f} MB ({cal['case_bytes'] / 1e3:.1f} kB per case)")
+        full = plan["paper_full_sweep_core_hours"]
+        line = (f"full paper sweep (19,440 pairs) at this fidelity and mesh size: {full:.1f} core-hours, "
+                f"{full * 60 / 64:.0f} min on 64 cores, store ≈ {plan['paper_full_sweep_store_bytes'] / 1e9:.2f} GB")
+        if "fast_goal" in plan:
+            line += (f"; goal ≤ 8 core-hours (≤ 1.5 s a pair): "
+                     f"{'met' if plan['fast_goal']['meets'] else 'NOT met'} ({cal['pair_s']:.2f} s a pair)")
+        typer.echo(line)
+
+
+def _fmt_s(x) -> str:
+    if x is None:
+        return "—"
+    if x >= 3600:
+        return f"{x / 3600:.1f} h"
+    if x >= 60:
+        return f"{x / 60:.1f} min"
+    return f"{x:.2f} s"
+
+
+@app.command()
+def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL."),
+           as_json: bool = typer.Option(False, "--json", help='One JSON object: {"done": N, "failed": N, "pending": N, …}.')):
+    """Progress of a store: counts by status, failure reasons, throughput, per-phase times, ETA."""
+    from storage.store import StoreError, inspect_store, summarize
+
+    try:
+        if inspect_store(store) is None:
+            raise StoreError(f"no heartctl store at {store}")
+        s = summarize(store)
+    except _store_errors() as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(s))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    con.print(f"[bold]{store}[/bold]: {s['shapes']} shapes × {s['cases_per_shape']} cases = {s['total']} "
+              f"({s['fidelity']}, seed {s['seed']}, ~{s['mesh_nodes']} nodes; {s['shapes_ready']} shapes meshed)")
+    pct = lambda n: f"{100 * n / s['total']:.1f} %" if s["total"] else "—"  # noqa: E731
+    con.print(f"done {s['done']} ({pct(s['done'])}), failed {s['failed']} ({pct(s['failed'])}), "
+              f"pending {s['pending']} ({pct(s['pending'])})")
+    thr = s["throughput_cases_per_s"]
+    lr = s["last_run"] or {}
+    con.print(f"throughput (run {lr.get('index', '—')}, {lr.get('done_in_run', 0)} done"
+              f"{', finished' if lr.get('ended') else ', running or interrupted'}): "
+              + (f"{thr:.3f} cases/s ({thr * 3600:.0f}/h)" if thr else "—")
+              + f"; ETA {_fmt_s(s['eta_s'])}"
+              + (f"; store {s['store_bytes'] / 1e6:.1f} MB" if s.get("store_bytes") is not None else ""))
+    table = Table(title="per-case times, done cases (s)")
+    for col in ("phase", "p50", "p90", "p99", "max", "mean"):
+        table.add_column(col, justify="right")
+    for name, p in s["phase_percentiles_s"].items():
+        if p is None:
+            table.add_row(name, *["—"] * 5)
+        else:
+            table.add_row(name, *(f"{p[k]:.3f}" for k in ("p50", "p90", "p99", "max", "mean")))
+    con.print(table)
+    if s["failure_reasons"]:
+        ft = Table(title="failure reasons")
+        ft.add_column("cases", justify="right")
+        ft.add_column("reason (numbers as #)")
+        ft.add_column("e.g. (shape, case)")
+        for f in s["failure_reasons"]:
+            ft.add_row(str(f["count"]), f["reason"], ", ".join(f"({a}, {b})" for a, b in f["cases"]))
+        con.print(ft)
+    if s["mesh_failures"]:
+        con.print(f"shapes that did not mesh: {s['mesh_failures']}")
+    if s["hosts"]:
+        con.print("done by host: " + ", ".join(f"{h} {n}" for h, n in sorted(s["hosts"].items())))
+
+
+@app.command()
+def export(store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL."),
+           shape: int = typer.Option(..., "--shape", help="Shape id."),
+           case: int = typer.Option(..., "--case", help="Case index k within the shape (see the store's case_params)."),
+           out: Path = typer.Option(..., "-o", "--out", help="Output mesh file, e.g. case.vtu (ParaView)."),
+           geometry: str = typer.Option("unloaded", "--geometry", help="Points of the mesh: unloaded | loaded.")):
+    """Write one done case as a mesh (points = unloaded geometry, point data `displacement` = loaded − unloaded)."""
+    from storage.store import export_case
+
+    try:
+        _check_output(out)
+        params = export_case(store, shape, case, out, geometry)
+    except _store_errors() as exc:
+        fail(str(exc))
+    typer.echo(f"shape {shape}, case {case} (P={params['pressure_mmhg']:g} mmHg, C={params['stiffness_pa']:g} Pa, "
+               f"θ={params['helix_endo_deg']:g}/{params['helix_epi_deg']:g}°) → {out}")
+
+
+@bench_app.command("sweep")
+def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one shape)."),
+                nodes: int = typer.Option(200, "--nodes", help="Target mesh node count (coarse keeps it short)."),
+                cpus: str = typer.Option("1,2", "--cpus", help="CPU counts to compare, comma-separated."),
+                as_json: bool = typer.Option(False, "--json")):
+    """Sweep throughput on 1 and 2 (…) CPUs, parallel efficiency, Ray overhead per task vs a fast pair's solve."""
+    try:
+        counts = [int(c) for c in cpus.replace(",", " ").split()]
+        if not counts or min(counts) < 1:
+            raise ValueError("--cpus needs counts ≥ 1")
+        if cases < 1 or nodes < 50:
+            raise ValueError("--cases must be ≥ 1 and --nodes ≥ 50")
+    except ValueError as exc:
+        fail(str(exc) if "--" in str(exc) else f"--cpus must be comma-separated integers, got {cpus!r}")
+    from orchestrator.bench import run_sweep_benchmark
+
+    result = run_sweep_benchmark(cases, nodes, counts)
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"heartctl bench sweep — {result['cases']} fast pairs, {result['nodes']} nodes; "
+                        f"plain serial {result['plain_serial_s_per_case']:.2f} s/pair")
+    for col in ("CPUs", "pairs/s", "speedup", "efficiency", "solve s (p50)", "idle core s/task", "submit→start s",
+                "result→stored s", "no-op round trip s", "overhead % of solve (idle / stored / no-op)"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        table.add_row(str(r["cpus"]), f"{r['throughput_cases_per_s']:.3f}", f"{r['speedup_vs_1']:.2f}",
+                      f"{100 * r['parallel_efficiency']:.0f} %", f"{r['solve_s_median']:.2f}",
+                      f"{r['idle_core_s_per_task']:.3f}", f"{r['submit_to_start_s_median']:.3f}",
+                      f"{r['result_to_stored_s_median']:.4f}", f"{r['noop_roundtrip_s_median']:.4f}",
+                      f"{r['overhead_idle_core_pct']:.1f} / {r['overhead_result_to_stored_pct']:.2f} / "
+                      f"{r['overhead_noop_pct']:.2f}")
+    Console(width=200).print(table)
+    typer.echo("submit→start includes queueing (2 tasks in flight per CPU); idle core s/task = "
+               "(CPUs × wall − Σ solve) / pairs, everything that is not solving.")
+
+
+# --- end of data generation (issue 3) ---
 
 
 import numpy as np  # noqa: E402  (after the app so `heartctl --help` stays light)

@@ -1,0 +1,165 @@
+"""Which cases a sweep has: shapes × P × C × θendo × θepi, and how a request is checked against
+the store it resumes."""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from solver.fidelity import get_fidelity
+from solver.lv import BASE_CONDITIONS
+from solver.meshing import MESH_LEVELS
+from solver.parameters import PAPER_GRID, CaseParameters
+
+AXES = ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg")
+AXIS_FLAGS = {"pressure_mmhg": "--pressures", "stiffness_pa": "--stiffness", "helix_endo_deg": "--endo",
+              "helix_epi_deg": "--epi"}
+PAPER_SHAPES = 60
+DEFAULT_FIDELITY = "accurate"  # the solver's measurements put `fast` ~0.7 mm from `accurate` (> 0.1 mm)
+ROUNDTRIP_TOL_FACTOR = 10.0  # accept a pair when the forward round trip is within 10× the inverse tolerance
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    shapes: int = PAPER_SHAPES
+    pressure_mmhg: tuple = PAPER_GRID["pressure_mmhg"]
+    stiffness_pa: tuple = PAPER_GRID["stiffness_pa"]
+    helix_endo_deg: tuple = PAPER_GRID["helix_endo_deg"]
+    helix_epi_deg: tuple = PAPER_GRID["helix_epi_deg"]
+    fidelity: str = DEFAULT_FIDELITY
+    seed: int = 0
+    nodes: int = MESH_LEVELS["default"]
+    base: str = "sliding"
+
+    def __post_init__(self):
+        for axis in AXES:
+            object.__setattr__(self, axis, tuple(float(v) for v in getattr(self, axis)))
+
+    # ---- checks
+
+    def validate(self) -> "SweepSpec":
+        """Raise ValueError (one line) for an unusable request."""
+        if not isinstance(self.shapes, int) or self.shapes < 1:
+            raise ValueError(f"--shapes must be ≥ 1, got {self.shapes}")
+        for axis in AXES:
+            values = getattr(self, axis)
+            flag = AXIS_FLAGS[axis]
+            if len(values) == 0:
+                raise ValueError(f"{flag} is empty: the grid has no cases")
+            if len(set(values)) != len(values):
+                raise ValueError(f"{flag} has repeated values: {', '.join(f'{v:g}' for v in values)}")
+            if not all(math.isfinite(v) for v in values):
+                raise ValueError(f"{flag} must be finite numbers")
+        # every value is checked by the solver's own parameter rules (ParameterError is a ValueError)
+        mids = [getattr(self, a)[0] for a in AXES]
+        for i, axis in enumerate(AXES):
+            for v in getattr(self, axis):
+                CaseParameters(*(v if j == i else mids[j] for j in range(len(AXES))))
+        get_fidelity(self.fidelity)
+        if self.seed < 0:
+            raise ValueError(f"--seed must be ≥ 0, got {self.seed}")
+        if self.nodes < 50:
+            raise ValueError(f"--nodes must be ≥ 50, got {self.nodes}")
+        if self.base not in BASE_CONDITIONS:
+            raise ValueError(f"unknown base condition {self.base!r}")
+        return self
+
+    # ---- cases
+
+    @property
+    def cases_per_shape(self) -> int:
+        return int(np.prod([len(getattr(self, a)) for a in AXES]))
+
+    @property
+    def n_cases(self) -> int:
+        return self.shapes * self.cases_per_shape
+
+    def case_params(self) -> np.ndarray:
+        """[K, 4] parameters, k = ((iP·nC + iC)·nEndo + iEndo)·nEpi + iEpi."""
+        return np.array(list(itertools.product(*(getattr(self, a) for a in AXES))), dtype=float).reshape(-1, 4)
+
+    def mid_params(self) -> tuple:
+        """A mid-grid parameter set (the calibration case)."""
+        return tuple(float(np.asarray(getattr(self, a))[len(getattr(self, a)) // 2]) for a in AXES)
+
+    # ---- store attributes
+
+    def grid_attrs(self) -> dict:
+        return {"shapes": self.shapes, **{a: list(getattr(self, a)) for a in AXES}}
+
+    def store_attrs(self) -> dict:
+        fid = get_fidelity(self.fidelity)
+        return {
+            "grid": self.grid_attrs(),
+            "fidelity": self.fidelity,
+            "fidelity_settings": {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                                  for k, v in asdict(fid).items()},
+            "seed": self.seed,
+            "mesh_nodes": self.nodes,
+            "base": self.base,
+            "n_cases_per_shape": self.cases_per_shape,
+            "case_params": self.case_params().tolist(),
+            "case_order": "k = ((iP*nC + iC)*nEndo + iEndo)*nEpi + iEpi",
+            "acceptance": {"roundtrip_tol_mm": ROUNDTRIP_TOL_FACTOR * fid.inverse_tol_mm,
+                           "min_jacobian_gt": 0.0, "finite": True},
+        }
+
+    @classmethod
+    def from_attrs(cls, attrs: dict) -> "SweepSpec":
+        g = attrs["grid"]
+        return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
+                   seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"))
+
+    def conflicts(self, attrs: dict) -> list[str]:
+        """How this request differs from the store's (empty: it may resume that store)."""
+        stored = SweepSpec.from_attrs(attrs)
+        out = []
+        if stored.shapes != self.shapes:
+            out.append(f"--shapes {self.shapes} (store has {stored.shapes})")
+        for a in AXES:
+            if not np.array_equal(np.asarray(getattr(stored, a)), np.asarray(getattr(self, a))):
+                out.append(f"{AXIS_FLAGS[a]} {_fmt(getattr(self, a))} (store has {_fmt(getattr(stored, a))})")
+        if stored.fidelity != self.fidelity:
+            out.append(f"--fidelity {self.fidelity} (store has {stored.fidelity})")
+        if stored.seed != self.seed:
+            out.append(f"--seed {self.seed} (store has {stored.seed})")
+        if stored.nodes != self.nodes:
+            out.append(f"--nodes {self.nodes} (store has {stored.nodes})")
+        if stored.base != self.base:
+            out.append(f"base {self.base} (store has {stored.base})")
+        return out
+
+
+def _fmt(values) -> str:
+    return ",".join(f"{v:g}" for v in values)
+
+
+def parse_axis(flag: str, text: str | None) -> tuple | None:
+    """'4,6,8' (commas and/or spaces) → (4.0, 6.0, 8.0); None stays None; '' → () (an empty grid)."""
+    if text is None:
+        return None
+    parts = [p for p in text.replace(",", " ").split() if p]
+    try:
+        return tuple(float(p) for p in parts)
+    except ValueError:
+        raise ValueError(f"{flag} must be comma-separated numbers, got {text!r}") from None
+
+
+LOCAL_SPEC = SweepSpec(shapes=3, pressure_mmhg=(8.0, 12.0), stiffness_pa=(100.0, 200.0), helix_endo_deg=(60.0,),
+                       helix_epi_deg=(-60.0,), fidelity="fast", seed=0, nodes=MESH_LEVELS["coarse"])
+
+
+def resolve_spec(explicit: dict, local: bool = False, stored_attrs: dict | None = None) -> SweepSpec:
+    """Options given on the command line win; then the --local preset; then the values of the
+    store being resumed; then the paper defaults. `explicit` maps SweepSpec field → value or None."""
+    if local:
+        base = LOCAL_SPEC
+    elif stored_attrs is not None:
+        base = SweepSpec.from_attrs(stored_attrs)
+    else:
+        base = SweepSpec()
+    values = asdict(base)
+    values.update({k: v for k, v in explicit.items() if v is not None})
+    return SweepSpec(**values)

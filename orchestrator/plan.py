@@ -1,0 +1,80 @@
+"""`generate --dry-run`: the plan of a sweep (cases, what a resume leaves, estimated core-hours
+and store size from a short calibration solve). Runs in-process, without Ray, writes nothing."""
+from __future__ import annotations
+
+import time
+
+from storage.store import DONE, FAILED, PairReader, encoded_case_bytes
+
+from .grid import SweepSpec
+from .tasks import mesh_shape, run_case
+
+PAPER_FULL_CASES = 19_440
+FAST_GOAL_CORE_HOURS = 8.0
+
+
+def existing_counts(location: str, spec: SweepSpec) -> dict:
+    try:
+        reader = PairReader(location)
+    except Exception:
+        return {"done": 0, "failed": 0}
+    done = failed = 0
+    for s in reader.shape_ids():
+        st = reader.status(s)
+        done += int((st == DONE).sum())
+        failed += int((st == FAILED).sum())
+    return {"done": done, "failed": failed}
+
+
+def calibrate(spec: SweepSpec) -> dict:
+    """Mesh shape 0 and solve one mid-grid pair at the requested fidelity (single thread)."""
+    t0 = time.perf_counter()
+    m = mesh_shape(0, spec.seed, spec.nodes)
+    mesh_s = time.perf_counter() - t0
+    params = spec.mid_params()
+    res = run_case(m["mesh"], params, spec.fidelity, spec.base)
+    out = {"nodes": int(m["mesh"].n_nodes), "tets": int(len(m["mesh"].tets)), "mesh_s": mesh_s,
+           "params": params, "pair_s": res["task_wall_s"], "ok": res["ok"], "reason": res["reason"]}
+    if res["ok"]:
+        out["case_bytes"] = encoded_case_bytes(res["unloaded"], res["loaded"])
+        out["inverse_s"] = res["stats"]["inverse_wall_s"]
+        out["forward_s"] = res["stats"]["forward_wall_s"]
+    else:
+        out["case_bytes"] = 2 * out["nodes"] * 3 * 4
+    return out
+
+
+def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: int | None = None,
+              calibration: bool = True) -> dict:
+    counts = existing_counts(location, spec) if store_attrs is not None else {"done": 0, "failed": 0}
+    remaining = spec.n_cases - counts["done"] - counts["failed"]
+    plan = {
+        "store": str(location), "resume": store_attrs is not None, "shapes": spec.shapes,
+        "cases_per_shape": spec.cases_per_shape, "cases": spec.n_cases, "done": counts["done"],
+        "failed": counts["failed"], "to_run": remaining, "fidelity": spec.fidelity, "seed": spec.seed,
+        "mesh_nodes": spec.nodes, "grid": spec.grid_attrs(),
+    }
+    if calibration:
+        cal = calibrate(spec)
+        plan["calibration"] = cal
+        core_s = remaining * cal["pair_s"] + (0 if store_attrs is not None else spec.shapes * cal["mesh_s"])
+        plan["core_hours"] = core_s / 3600
+        if cores:
+            plan["cores"] = cores
+            plan["wall_hours_at_cores"] = core_s / 3600 / cores
+        plan["store_bytes_estimate"] = int(spec.n_cases * cal["case_bytes"]
+                                           + spec.shapes * cal["nodes"] * 3 * 8 * 1.2)
+        full = PAPER_FULL_CASES * cal["pair_s"] / 3600
+        plan["paper_full_sweep_core_hours"] = full
+        plan["paper_full_sweep_store_bytes"] = int(PAPER_FULL_CASES * cal["case_bytes"])
+        if spec.fidelity == "fast":
+            plan["fast_goal"] = {"core_hours_goal": FAST_GOAL_CORE_HOURS, "pair_s_goal": 1.5,
+                                 "meets": bool(full <= FAST_GOAL_CORE_HOURS)}
+    return plan
+
+
+def cluster_cores() -> int:
+    import os
+
+    return os.cpu_count() or 1
+

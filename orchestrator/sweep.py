@@ -1,0 +1,352 @@
+"""The sweep driver: phase 1 meshes the shapes (Ray tasks) and writes them with every case array;
+phase 2 runs the pairs as Ray tasks (bounded in flight with `ray.wait`); tasks return arrays and
+the driver — the store's only writer — validates, writes and marks each case.
+
+Failures: a lost worker or node is retried by Ray (`max_retries`); a solver failure is retried
+once inside the task with a more robust setting, then recorded as failed with its reason. The
+sweep never stops for one case. Resume: cases already done (or failed, unless retry_failed) are
+never resubmitted.
+"""
+from __future__ import annotations
+
+import os
+import socket
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, stats_row
+
+from .grid import SweepSpec
+
+TASK_MAX_RETRIES = 3  # worker process crash / node loss
+THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+FLUSH_INTERVAL_S = 2.0
+
+
+class SweepConflict(ValueError):
+    """The request conflicts with the store it would resume."""
+
+
+@dataclass
+class SweepReport:
+    total: int
+    done_before: int
+    failed_before: int
+    submitted: int = 0
+    done: int = 0
+    failed: int = 0
+    meshed_shapes: int = 0
+    mesh_failures: int = 0
+    phase1_s: float = 0.0
+    phase2_s: float = 0.0
+    wall_s: float = 0.0
+    cpus: float = 0.0
+    run: int = -1
+    driver_store_s: float = 0.0  # driver time spent validating + writing results
+    records: list = field(default_factory=list, repr=False)  # per finished task: (shape, k, status)
+
+    @property
+    def throughput(self) -> float:
+        return (self.done + self.failed) / self.phase2_s if self.phase2_s > 0 else float("nan")
+
+    def as_dict(self) -> dict:
+        d = {k: v for k, v in self.__dict__.items() if k != "records"}
+        d["throughput_cases_per_s"] = self.throughput
+        return d
+
+
+# --------------------------------------------------------------------------- request checks (no Ray, no writes)
+
+
+def check_request(spec: SweepSpec, location: str) -> dict | None:
+    """Validate the spec and the store it targets, read-only. Returns the store's attributes
+    (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line)."""
+    spec.validate()
+    attrs = inspect_store(location)
+    if attrs is not None:
+        conflicts = spec.conflicts(attrs)
+        if conflicts:
+            raise SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
+                                f"use the store's settings to resume, or a new --store")
+    return attrs
+
+
+def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) -> dict:
+    """Read-only counts of a store for this spec: done, failed, and to_run (cases a run would submit,
+    counting every case of a shape not meshed yet)."""
+    from storage.store import PairReader
+
+    counts = {"done": 0, "failed": 0, "to_run": spec.n_cases}
+    if inspect_store(location) is None:
+        return counts
+    reader = PairReader(location)
+    ready = set(reader.shape_ids())
+    to_run = 0
+    for s in range(spec.shapes):
+        if s not in ready:
+            to_run += spec.cases_per_shape
+            continue
+        st = reader.status(s)
+        counts["done"] += int((st == DONE).sum())
+        counts["failed"] += int((st == FAILED).sum())
+        to_run += int((st == PENDING).sum()) + (int((st == FAILED).sum()) if retry_failed else 0)
+    counts["to_run"] = to_run
+    return counts
+
+
+# --------------------------------------------------------------------------- Ray
+
+
+def init_ray(address: str | None = None, num_cpus: int | None = None, local: bool = False, quiet: bool = True):
+    """Start (or join, with `address`) Ray. A local Ray's dashboard listens on 127.0.0.1 only;
+    in --local mode there is no dashboard at all. Worker BLAS/MKL run single-threaded."""
+    import logging
+
+    import ray
+
+    for k, v in THREAD_ENV.items():
+        os.environ.setdefault(k, v)
+    kwargs = dict(runtime_env={"env_vars": dict(THREAD_ENV)}, logging_level=logging.WARNING if quiet else logging.INFO,
+                  log_to_driver=not quiet, configure_logging=True)
+    if address:
+        return ray.init(address=address, **kwargs)
+    if local:
+        return ray.init(num_cpus=num_cpus or 2, include_dashboard=False, **kwargs)
+    return ray.init(num_cpus=num_cpus, dashboard_host="127.0.0.1", **kwargs)
+
+
+def _remotes():
+    import ray
+
+    from . import tasks
+
+    mesh_remote = ray.remote(num_cpus=1, max_retries=TASK_MAX_RETRIES)(tasks.mesh_shape)
+    case_remote = ray.remote(num_cpus=1, max_retries=TASK_MAX_RETRIES, retry_exceptions=False)(tasks.run_case)
+    return mesh_remote, case_remote
+
+
+def _solver_digest() -> str:
+    import hashlib
+    from pathlib import Path
+
+    import solver
+
+    h = hashlib.sha256()
+    for p in sorted(Path(solver.__file__).parent.glob("*.py")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def solver_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        v = version("heartctl")
+    except Exception:
+        v = "unknown"
+    return f"heartctl {v} (solver sha256:{_solver_digest()})"
+
+
+# --------------------------------------------------------------------------- the sweep
+
+
+def open_or_create(spec: SweepSpec, location: str) -> PairStore:
+    attrs = check_request(spec, location)
+    if attrs is None:
+        return PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()})
+    return PairStore.open(location)
+
+
+def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = None, retry_failed: bool = False,
+              progress: bool = True, on_event=None, console=None) -> SweepReport:
+    """Run (or resume) the sweep into the store at `location`. Ray must be initialised
+    (see init_ray). `on_event(dict)` is called after every recorded case (tests use it)."""
+    import ray
+
+    if not ray.is_initialized():
+        raise RuntimeError("run_sweep needs Ray: call init_ray() first")
+    t_start = time.perf_counter()
+    store = open_or_create(spec, location)
+    cpus = float(ray.cluster_resources().get("CPU", 1.0))
+    max_in_flight = max_in_flight or max(2, int(2 * cpus))
+    K = store.n_cases
+    counts_before = _count(store, spec.shapes)
+    report = SweepReport(total=spec.n_cases, done_before=counts_before[DONE], failed_before=counts_before[FAILED],
+                         cpus=cpus)
+    run = store.begin_run({"host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus,
+                           "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": max_in_flight,
+                           "done_before": report.done_before, "failed_before": report.failed_before})
+    report.run = run
+    mesh_remote, case_remote = _remotes()
+    kept_failed = 0 if retry_failed else report.failed_before
+    bar = _Progress(progress, spec.n_cases, report.done_before + kept_failed, kept_failed, console)
+    try:
+        with bar:
+            # ---- phase 1: meshes
+            t1 = time.perf_counter()
+            missing = [s for s in range(spec.shapes) if not store.shape_ready(s)]
+            bar.phase(f"meshing {len(missing)} shapes" if missing else "meshes ready")
+            refs = {mesh_remote.remote(s, spec.seed, spec.nodes): s for s in missing}
+            while refs:
+                ready, _ = ray.wait(list(refs), num_returns=1)
+                s = refs.pop(ready[0])
+                try:
+                    out = ray.get(ready[0])
+                except Exception as exc:  # a shape that will not mesh: its cases stay pending, noted
+                    store.record_mesh_failure(s, _error_line(exc))
+                    report.mesh_failures += 1
+                    continue
+                m = out["mesh"]
+                store.write_shape(s, m.nodes, m.tets, m.endo, m.epi, m.base, out["coefficients"], out["info"])
+                report.meshed_shapes += 1
+            report.phase1_s = time.perf_counter() - t1
+
+            # ---- phase 2: pairs
+            t2 = time.perf_counter()
+            todo = deque()
+            mesh_refs = {}
+            for s in range(spec.shapes):
+                if not store.shape_ready(s):
+                    continue
+                status = store.status(s)
+                wanted = (status == PENDING) | ((status == FAILED) if retry_failed else False)
+                ks = np.flatnonzero(wanted)
+                if len(ks):
+                    todo.extend((s, int(k)) for k in ks)
+            bar.phase(f"solving {len(todo)} pairs on {cpus:g} CPUs")
+            inflight: dict = {}
+            while todo or inflight:
+                while todo and len(inflight) < max_in_flight:
+                    s, k = todo.popleft()
+                    if s not in mesh_refs:
+                        mesh_refs[s] = ray.put(_tet_mesh(store, s))
+                    ref = case_remote.remote(mesh_refs[s], tuple(store.params[k]), spec.fidelity, spec.base)
+                    inflight[ref] = (s, k, time.time())
+                    report.submitted += 1
+                ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
+                for ref in ready:
+                    s, k, submitted_at = inflight.pop(ref)
+                    try:
+                        result = ray.get(ref)
+                    except Exception as exc:  # task error, or worker lost after max_retries
+                        result = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
+                    t_w = time.perf_counter()
+                    status = _record(store, s, k, result, submitted_at, run)
+                    report.driver_store_s += time.perf_counter() - t_w
+                    if status == DONE:
+                        report.done += 1
+                    else:
+                        report.failed += 1
+                    report.records.append((s, k, status))
+                    bar.advance(status == FAILED)
+                    if on_event is not None:
+                        on_event({"shape": s, "case": k, "status": status, "report": report})
+                store.flush(FLUSH_INTERVAL_S)
+            report.phase2_s = time.perf_counter() - t2
+    finally:
+        store.flush()
+        report.wall_s = time.perf_counter() - t_start
+        try:
+            store.end_run(run, {"done": report.done, "failed": report.failed, "submitted": report.submitted,
+                                "wall_s": report.wall_s, "phase1_s": report.phase1_s, "phase2_s": report.phase2_s})
+        except Exception:
+            pass
+    return report
+
+
+def _tet_mesh(store: PairStore, s: int):
+    from solver.mesh import TetMesh
+
+    a = store.mesh_arrays(s)
+    return TetMesh(a["ed_reference"].astype(float), a["tets"].astype(np.int64), a["endo"].astype(np.int64),
+                   a["epi"].astype(np.int64), a["base"].astype(np.int64), {"shape_id": s})
+
+
+def _record(store: PairStore, s: int, k: int, result: dict, submitted_at: float, run: int) -> int:
+    values = dict(result.get("stats") or {})
+    values.update({"solve_attempts": result.get("attempts"), "task_wall_s": result.get("task_wall_s"),
+                   "submitted_at": submitted_at, "started_at": result.get("started_at"),
+                   "finished_at": result.get("finished_at"), "worker_pid": result.get("pid"), "run": run})
+    reason = result.get("reason")
+    if result.get("ok"):
+        reason = store.write_pair(s, k, result["unloaded"], result["loaded"], values)
+    values["stored_at"] = time.time()
+    status = DONE if reason is None else FAILED
+    store.set_case(s, k, status, stats_row(values), result.get("host"), reason)
+    return status
+
+
+def _error_line(exc: BaseException) -> str:
+    import ray
+
+    if isinstance(exc, ray.exceptions.RayTaskError):
+        cause = exc.cause if getattr(exc, "cause", None) is not None else exc
+        text = str(cause).strip().splitlines()
+        return f"{type(cause).__name__}: {text[-1] if text else ''}".strip()
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0] if text else ''}".strip()
+
+
+def _count(store: PairStore, shapes: int) -> dict:
+    counts = {PENDING: 0, DONE: 0, FAILED: 0}
+    for s in range(shapes):
+        if store.shape_ready(s):
+            st = store.status(s)
+            for code in counts:
+                counts[code] += int((st == code).sum())
+        else:
+            counts[PENDING] += store.n_cases
+    return counts
+
+
+class _Progress:
+    """A rich progress bar: done / failed / rate / ETA (silent when disabled)."""
+
+    def __init__(self, enabled: bool, total: int, completed: int, failed: int, console=None):
+        self.enabled = enabled
+        self.failed = failed
+        self.total, self.completed = total, completed
+        self._progress = None
+        if enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
+                TimeRemainingColumn
+
+            self._progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                                      TextColumn("done {task.fields[done]} · failed {task.fields[failed]}"),
+                                      TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("ETA"),
+                                      TimeRemainingColumn(), console=console or Console(stderr=True),
+                                      transient=False)
+            self._task = self._progress.add_task("starting", total=total, completed=completed, failed=failed,
+                                                 done=completed - failed, rate="")
+        self._t0 = time.perf_counter()
+        self._n = 0
+
+    def __enter__(self):
+        if self._progress:
+            self._progress.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._progress:
+            self._progress.__exit__(*exc)
+
+    def phase(self, text: str) -> None:
+        if self._progress:
+            self._progress.update(self._task, description=text)
+            if text.startswith("solving"):
+                self._t0 = time.perf_counter()
+
+    def advance(self, failed: bool) -> None:
+        self._n += 1
+        self.completed += 1
+        self.failed += int(failed)
+        if self._progress:
+            rate = self._n / max(time.perf_counter() - self._t0, 1e-9)
+            self._progress.update(self._task, advance=1, failed=self.failed, done=self.completed - self.failed,
+                                  rate=f"{rate * 3600:.0f}/h" if rate < 1 else f"{rate:.2f}/s")

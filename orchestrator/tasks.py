@@ -1,0 +1,96 @@
+"""The work of one task, as plain functions (no Ray here): the sweep wraps them in `ray.remote`,
+tests and benchmarks call them directly."""
+from __future__ import annotations
+
+import os
+import socket
+import time
+from dataclasses import replace
+
+import numpy as np
+
+ROBUST_INITIAL_LOAD_STEP = 0.05
+ROBUST_MIN_STEP_FACTOR = 0.1
+
+
+def _single_thread() -> None:
+    # one solve per core: keep BLAS / MKL (pypardiso) from oversubscribing the worker's CPU
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+
+
+def mesh_shape(shape_id: int, seed: int, nodes: int) -> dict:
+    """Mesh one shape-model member. Returns the TetMesh and its shape coefficients."""
+    _single_thread()
+    from solver.meshing import mesh_lv
+    from solver.shape_model import lv_shape
+
+    t0 = time.perf_counter()
+    shape = lv_shape(int(shape_id), int(seed))
+    mesh = mesh_lv(shape, int(nodes))
+    info = {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in mesh.info.items()
+            if isinstance(v, (int, float, str, np.floating, np.integer))}
+    info["cavity_volume_ml"] = float(shape.cavity_volume_ml())
+    info["mesh_wall_s"] = time.perf_counter() - t0
+    info["host"] = socket.gethostname()
+    return {"shape_id": int(shape_id), "mesh": mesh, "coefficients": np.asarray(shape.coefficients, dtype=float),
+            "info": info}
+
+
+def robust_fidelity(fidelity):
+    """The retry setting after a solver failure: smaller first and minimum load steps."""
+    return replace(fidelity, initial_load_step=min(fidelity.initial_load_step, ROBUST_INITIAL_LOAD_STEP),
+                   min_load_step=fidelity.min_load_step * ROBUST_MIN_STEP_FACTOR)
+
+
+def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True) -> dict:
+    """One training pair: inverse then forward FE. A solver failure (SolveError, or an inverted
+    trial geometry) is retried once with `robust_fidelity`; if that fails too the result says so
+    (ok False, reason) — this function does not raise for a case that will not solve.
+
+    mesh: solver TetMesh (the ED geometry); params: (P mmHg, C Pa, θendo °, θepi °) or CaseParameters.
+    Returns ok, unloaded/loaded [n,3] (mm, float64) or None, stats (the pair's), reason, attempts,
+    host, pid, started_at / finished_at (unix s), task_wall_s.
+    """
+    _single_thread()
+    from solver.fidelity import get_fidelity
+    from solver.forward import SolveError
+    from solver.lv import make_pair
+    from solver.mesh import MeshError
+    from solver.parameters import CaseParameters
+
+    started_at = time.time()
+    t0 = time.perf_counter()
+    if not isinstance(params, CaseParameters):
+        params = CaseParameters(*(float(v) for v in params))
+    fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
+    settings = [fid, robust_fidelity(fid)] if retry else [fid]
+    pair, reasons, attempts = None, [], 0
+    for setting in settings:
+        attempts += 1
+        try:
+            pair = make_pair(mesh, params, setting, base)
+            break
+        except (SolveError, MeshError) as exc:
+            reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+    wall = time.perf_counter() - t0
+    out = {"ok": pair is not None, "attempts": attempts, "host": socket.gethostname(), "pid": os.getpid(),
+           "started_at": started_at, "finished_at": time.time(), "task_wall_s": wall,
+           "unloaded": None, "loaded": None, "stats": {}, "reason": None}
+    if pair is None:
+        out["reason"] = reasons[-1]
+        out["first_reason"] = reasons[0]
+    else:
+        out["unloaded"] = np.asarray(pair.unloaded_nodes, dtype=float)
+        out["loaded"] = np.asarray(pair.loaded_nodes, dtype=float)
+        out["stats"] = {k: float(v) for k, v in pair.stats.items()}
+    return out
+
+
+def warm_up(seconds: float = 0.2) -> int:
+    """Import the solver in a worker (benchmarks warm the pool with this)."""
+    _single_thread()
+    import solver.lv  # noqa: F401
+
+    time.sleep(seconds)
+    return os.getpid()

@@ -1,0 +1,646 @@
+"""The Zarr 3 store of FE pairs (DESIGN.md, "The Zarr store").
+
+Layout (one writer: the sweep driver)::
+
+    /                       attrs: schema, schema_version, units, grid, fidelity, seed, mesh_nodes,
+                                   base, solver_version, stat_names, runs, ...
+    shapes/<id>/            attrs: shape_id, n_nodes, n_cases, ready, cavity_volume_ml, hosts, failures
+        ed_reference [n,3]  float64, mm (the ED mesh the pairs were solved on)
+        tets [m,4]          int32
+        endo/epi/base [k,3] int32 boundary triangles (outward)
+        coefficients [d]    float64, shape-model mode coefficients (SD units)
+        params [K,4]        float64, the case table's parameters (P mmHg, C Pa, θendo °, θepi °)
+        status [K]          int8, 0 pending / 1 done / 2 failed
+        stats [K,S]         float64, solver and timing statistics (names in the root attr stat_names)
+        unloaded [K,n,3]    float32, mm, one case per chunk (fill NaN)
+        loaded [K,n,3]      float32, mm, one case per chunk (fill NaN)
+
+Coordinates are float32 (precision ≈ 4e-6 mm at 60 mm, far below the solver's 1e-4 mm tolerance);
+this keeps the full paper sweep at ~1000 nodes near 0.4 GB compressed.
+
+A case's status becomes `done` only after its two chunks were written, read back and found equal,
+finite, free of inverted tets, and the solve met its convergence tolerance. Status, stats and the
+per-case hosts/failure reasons are rewritten by the driver in that order (stats, attrs, status), so
+a driver killed at any point leaves, at worst, a finished case still `pending` (it is recomputed),
+never a `done` case with missing data. Local writes are atomic (zarr's LocalStore writes a temporary
+file and renames it); object stores (S3, GCS) put whole objects.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+SCHEMA = "heartctl.lv-pairs"
+SCHEMA_VERSION = 1
+PENDING, DONE, FAILED = 0, 1, 2
+STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed"}
+PARAM_NAMES = ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg")
+PAIR_STAT_NAMES = (
+    "inverse_updates", "inverse_newton_iterations", "forward_newton_iterations", "forward_load_steps",
+    "inverse_mismatch_mm", "roundtrip_error_mm", "final_residual", "min_jacobian",
+    "inverse_wall_s", "forward_wall_s", "assembly_s", "linear_s",
+)
+STAT_NAMES = PAIR_STAT_NAMES + (
+    "solve_attempts",  # 1, or 2 when the robust retry ran
+    "task_wall_s",  # solve time inside the task (all attempts)
+    "submitted_at", "started_at", "finished_at", "stored_at",  # unix times: driver, worker, worker, driver
+    "worker_pid",
+    "run",  # index into the root attr `runs`
+)
+UNITS = {"length": "mm", "pressure": "mmHg", "stiffness": "Pa", "angle": "deg", "time": "s"}
+COORD_DTYPE = np.float32
+
+
+class StoreError(ValueError):
+    """A store that cannot be used as asked; the message is one line."""
+
+
+# --------------------------------------------------------------------------- opening
+
+
+def is_url(location: str) -> bool:
+    return "://" in str(location) and not str(location).startswith("file://")
+
+
+def _local_path(location) -> Path:
+    s = str(location)
+    return Path(s[len("file://"):] if s.startswith("file://") else s)
+
+
+def _open_group(location, mode: str, storage_options: dict | None = None):
+    import zarr
+
+    if is_url(location):
+        return zarr.open_group(str(location), mode=mode, zarr_format=3, storage_options=storage_options)
+    from zarr.storage import LocalStore
+
+    return zarr.open_group(LocalStore(_local_path(location), read_only=(mode == "r")), mode=mode, zarr_format=3)
+
+
+def inspect_store(location, storage_options: dict | None = None) -> dict | None:
+    """Root attributes of the heartctl store at `location`, or None when there is none yet.
+    Read-only. Raises StoreError for a path that is a file, a folder that is not a Zarr store,
+    a Zarr store of another schema or schema version."""
+    if not is_url(location):
+        path = _local_path(location)
+        if path.is_file():
+            raise StoreError(f"store path {path} is a file, not a Zarr store")
+        if not path.exists():
+            if not path.parent.exists():
+                raise StoreError(f"folder {path.parent} does not exist")
+            return None
+        if path.is_dir() and not any(path.iterdir()):
+            return None
+        if not (path / "zarr.json").is_file():
+            raise StoreError(f"{path} is a non-empty folder that is not a Zarr 3 store")
+    try:
+        root = _open_group(location, "r", storage_options)
+    except FileNotFoundError:
+        return None
+    except Exception as exc:  # zarr raises several types for missing / unreadable groups
+        if type(exc).__name__ in ("GroupNotFoundError", "NodeNotFoundError"):
+            return None
+        raise StoreError(f"cannot open {location} as a Zarr 3 group: {_first_line(exc)}") from None
+    attrs = dict(root.attrs)
+    if attrs.get("schema") != SCHEMA:
+        found = attrs.get("schema", "none")
+        raise StoreError(f"{location} is a Zarr store of another schema ({found!r}, expected {SCHEMA!r})")
+    if attrs.get("schema_version") != SCHEMA_VERSION:
+        raise StoreError(f"{location} has schema version {attrs.get('schema_version')!r}; "
+                         f"this heartctl reads version {SCHEMA_VERSION}")
+    return attrs
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def _compressor():
+    from zarr.codecs import BloscCodec
+
+    return BloscCodec(cname="zstd", clevel=5, shuffle="shuffle")
+
+
+def remove_partial_files(location) -> int:
+    """Delete temporary `*.partial` files a killed writer left behind (local stores only)."""
+    if is_url(location):
+        return 0
+    removed = 0
+    for p in _local_path(location).rglob("*.partial"):
+        try:
+            p.unlink()
+            removed += 1
+        except OSError:
+            pass
+    return removed
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def signed_tet_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    x = np.asarray(nodes, dtype=float)[tets]
+    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0])) / 6.0
+
+
+def validate_pair(tets: np.ndarray, n_nodes: int, unloaded, loaded, stats: dict, roundtrip_tol_mm: float) -> str | None:
+    """None when the pair may be marked done, else the reason (one line)."""
+    for name, x in (("unloaded", unloaded), ("loaded", loaded)):
+        x = np.asarray(x)
+        if x.shape != (n_nodes, 3):
+            return f"{name} geometry has shape {x.shape}, expected ({n_nodes}, 3)"
+        if not np.all(np.isfinite(x)):
+            return f"{name} geometry has NaN or infinite coordinates"
+        if signed_tet_volumes(x, tets).min() <= 0:
+            return f"{name} geometry has an inverted or degenerate tetrahedron"
+    min_j = stats.get("min_jacobian", float("nan"))
+    if not (np.isfinite(min_j) and min_j > 0):
+        return f"min det F {min_j} is not > 0"
+    err = stats.get("roundtrip_error_mm", float("nan"))
+    if not (np.isfinite(err) and err <= roundtrip_tol_mm):
+        return f"round-trip error {err:.3g} mm exceeds the tolerance {roundtrip_tol_mm:g} mm"
+    res = stats.get("final_residual", float("nan"))
+    if not np.isfinite(res):
+        return "final residual is not finite"
+    return None
+
+
+# --------------------------------------------------------------------------- the driver's writer
+
+
+@dataclass
+class _Table:
+    status: np.ndarray  # [K] int8
+    stats: np.ndarray  # [K, S]
+    hosts: dict  # str(k) -> host
+    failures: dict  # str(k) -> reason
+    dirty: bool = False
+
+
+class PairStore:
+    """Write access for the (single) sweep driver."""
+
+    def __init__(self, root, location):
+        self.root = root
+        self.location = str(location)
+        self.attrs = dict(root.attrs)
+        self.n_cases = int(self.attrs["n_cases_per_shape"])
+        self.params = np.asarray(self.attrs["case_params"], dtype=float).reshape(self.n_cases, len(PARAM_NAMES))
+        self.roundtrip_tol_mm = float(self.attrs["acceptance"]["roundtrip_tol_mm"])
+        self._tables: dict[int, _Table] = {}
+        self._handles: dict[int, dict] = {}  # shape → cached tets and array handles
+        self._last_flush = time.monotonic()
+
+    # ---- creation / opening
+
+    @classmethod
+    def create(cls, location, attrs: dict, storage_options: dict | None = None) -> "PairStore":
+        """Create the root group with its attributes (fails if a store exists there)."""
+        base = {"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "units": UNITS,
+                "param_names": list(PARAM_NAMES), "stat_names": list(STAT_NAMES),
+                "status_codes": {v: k for k, v in STATUS_NAMES.items()},
+                "coordinate_dtype": np.dtype(COORD_DTYPE).name, "created": _now_iso(), "runs": [],
+                "mesh_failures": {}}
+        base.update(attrs)
+        for key in ("n_cases_per_shape", "case_params", "acceptance", "grid"):
+            if key not in base:
+                raise ValueError(f"store attributes need {key!r}")
+        if not is_url(location) and not _local_path(location).parent.exists():
+            raise StoreError(f"folder {_local_path(location).parent} does not exist")
+        root = _open_group(location, "w-", storage_options)
+        root.attrs.update(_jsonable(base))
+        root.create_group("shapes")
+        return cls(root, location)
+
+    @classmethod
+    def open(cls, location, storage_options: dict | None = None) -> "PairStore":
+        if inspect_store(location, storage_options) is None:
+            raise StoreError(f"no heartctl store at {location}")
+        remove_partial_files(location)
+        return cls(_open_group(location, "r+", storage_options), location)
+
+    def update_attrs(self, **values) -> None:
+        self.root.attrs.update(_jsonable(values))
+        self.attrs.update(_jsonable(values))
+
+    # ---- runs (audit trail)
+
+    def begin_run(self, info: dict) -> int:
+        runs = list(self.attrs.get("runs", []))
+        runs.append(_jsonable({"started_at": time.time(), "started": _now_iso(), **info}))
+        self.update_attrs(runs=runs)
+        return len(runs) - 1
+
+    def end_run(self, index: int, info: dict) -> None:
+        runs = list(self.attrs.get("runs", []))
+        runs[index] = {**runs[index], **_jsonable({"ended_at": time.time(), **info})}
+        self.update_attrs(runs=runs)
+
+    def record_mesh_failure(self, shape_id: int, reason: str) -> None:
+        failures = dict(self.attrs.get("mesh_failures", {}))
+        failures[str(shape_id)] = reason
+        self.update_attrs(mesh_failures=failures)
+
+    # ---- shapes
+
+    def _shapes(self):
+        return self.root["shapes"]
+
+    def shape_ready(self, shape_id: int) -> bool:
+        shapes = self._shapes()
+        key = str(shape_id)
+        if key not in shapes:
+            return False
+        return bool(shapes[key].attrs.get("ready", False))
+
+    def write_shape(self, shape_id: int, nodes, tets, endo, epi, base, coefficients, info: dict | None = None) -> None:
+        """Write a shape's mesh and create every case array of it, then mark the shape ready."""
+        shapes = self._shapes()
+        key = str(shape_id)
+        if key in shapes:
+            del shapes[key]  # a shape group left unfinished by a killed driver
+        n, K = int(np.asarray(nodes).shape[0]), self.n_cases
+        g = shapes.create_group(key)
+        comp = _compressor()
+        g.create_array("ed_reference", data=np.asarray(nodes, dtype=np.float64), compressors=comp)
+        for name, arr in (("tets", tets), ("endo", endo), ("epi", epi), ("base", base)):
+            g.create_array(name, data=np.asarray(arr, dtype=np.int32), compressors=comp)
+        g.create_array("coefficients", data=np.asarray(coefficients, dtype=np.float64))
+        g.create_array("params", data=self.params.astype(np.float64))
+        g.create_array("status", shape=(K,), chunks=(K,), dtype=np.int8, fill_value=PENDING)
+        g.create_array("stats", shape=(K, len(STAT_NAMES)), chunks=(K, len(STAT_NAMES)), dtype=np.float64,
+                       fill_value=np.nan)
+        for name in ("unloaded", "loaded"):
+            g.create_array(name, shape=(K, n, 3), chunks=(1, n, 3), dtype=COORD_DTYPE, fill_value=np.nan,
+                           compressors=comp, dimension_names=("case", "node", "xyz"))
+        g.attrs.update(_jsonable({"shape_id": shape_id, "n_nodes": n, "n_tets": int(np.asarray(tets).shape[0]),
+                                  "n_cases": K, "hosts": {}, "failures": {}, "info": info or {}}))
+        g.attrs.update({"ready": True})  # last: a shape without it is re-meshed on resume
+        self._tables.pop(shape_id, None)
+        self._handles.pop(shape_id, None)
+
+    def _handle(self, shape_id: int) -> dict:
+        if shape_id not in self._handles:
+            g = self._shapes()[str(shape_id)]
+            self._handles[shape_id] = {"group": g, "tets": g["tets"][...], "n": int(g.attrs["n_nodes"]),
+                                       "unloaded": g["unloaded"], "loaded": g["loaded"], "status": g["status"],
+                                       "stats": g["stats"]}
+        return self._handles[shape_id]
+
+    def tets(self, shape_id: int) -> np.ndarray:
+        return self._shapes()[str(shape_id)]["tets"][...]
+
+    def mesh_arrays(self, shape_id: int) -> dict:
+        g = self._shapes()[str(shape_id)]
+        return {name: g[name][...] for name in ("ed_reference", "tets", "endo", "epi", "base")}
+
+    # ---- the case table (cached in memory, flushed by the driver)
+
+    def table(self, shape_id: int) -> _Table:
+        if shape_id not in self._tables:
+            g = self._shapes()[str(shape_id)]
+            self._tables[shape_id] = _Table(g["status"][...], g["stats"][...], dict(g.attrs.get("hosts", {})),
+                                            dict(g.attrs.get("failures", {})))
+        return self._tables[shape_id]
+
+    def status(self, shape_id: int) -> np.ndarray:
+        return self.table(shape_id).status.copy()
+
+    def write_pair(self, shape_id: int, k: int, unloaded, loaded, stats: dict) -> str | None:
+        """Validate, write and read back the two chunks of case k. Returns None when the case may
+        be marked done, else the reason it may not (nothing is marked here)."""
+        h = self._handle(shape_id)
+        reason = validate_pair(h["tets"], h["n"], unloaded, loaded, stats, self.roundtrip_tol_mm)
+        if reason is not None:
+            return f"invalid result: {reason}"
+        for name, x in (("unloaded", unloaded), ("loaded", loaded)):
+            x32 = np.asarray(x, dtype=COORD_DTYPE)
+            h[name][k] = x32
+            back = h[name][k]
+            if not np.array_equal(back, x32):
+                return f"read-back of {name} differs from what was written"
+        return None
+
+    def set_case(self, shape_id: int, k: int, status: int, stats_row: np.ndarray, host: str | None = None,
+                 reason: str | None = None) -> None:
+        t = self.table(shape_id)
+        t.status[k] = status
+        t.stats[k] = stats_row
+        if host:
+            t.hosts[str(k)] = host
+        if reason is None:
+            t.failures.pop(str(k), None)
+        else:
+            t.failures[str(k)] = reason
+        t.dirty = True
+
+    def flush(self, min_interval_s: float = 0.0) -> bool:
+        """Write changed case tables: stats, then attrs (hosts, reasons), then status."""
+        if time.monotonic() - self._last_flush < min_interval_s:
+            return False
+        for shape_id, t in self._tables.items():
+            if not t.dirty:
+                continue
+            h = self._handle(shape_id)
+            h["stats"][...] = t.stats
+            h["group"].attrs.update({"hosts": t.hosts, "failures": t.failures})
+            h["status"][...] = t.status
+            t.dirty = False
+        self._last_flush = time.monotonic()
+        return True
+
+
+def _now_iso() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%S%z")
+
+
+def stats_row(values: dict) -> np.ndarray:
+    return np.array([float(values.get(name, np.nan)) if values.get(name) is not None else np.nan
+                     for name in STAT_NAMES], dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- readers
+
+
+@dataclass
+class Case:
+    shape_id: int
+    index: int  # k, the case's row in the shape's table
+    params: dict  # pressure_mmhg, stiffness_pa, helix_endo_deg, helix_epi_deg
+    unloaded: np.ndarray  # [n,3] mm (float32 as stored)
+    loaded: np.ndarray  # [n,3] mm
+    ed_reference: np.ndarray  # [n,3] mm
+    tets: np.ndarray  # [m,4]
+    stats: dict
+
+
+class PairReader:
+    """Read access for training and evaluation: only `done` cases are visible."""
+
+    def __init__(self, location, storage_options: dict | None = None):
+        if inspect_store(location, storage_options) is None:
+            raise StoreError(f"no heartctl store at {location}")
+        self.location = str(location)
+        self.root = _open_group(location, "r", storage_options)
+        self.attrs = dict(self.root.attrs)
+        self.stat_names = tuple(self.attrs["stat_names"])
+        self.n_cases = int(self.attrs["n_cases_per_shape"])
+        self._cache: dict[int, dict] = {}
+
+    def shape_ids(self) -> list[int]:
+        """Shapes whose mesh and case arrays exist (ready), sorted."""
+        shapes = self.root["shapes"]
+        ids = []
+        for key in shapes.group_keys():
+            if shapes[key].attrs.get("ready", False):
+                ids.append(int(key))
+        return sorted(ids)
+
+    def _shape(self, shape_id: int):
+        return self.root["shapes"][str(shape_id)]
+
+    def _static(self, shape_id: int) -> dict:
+        if shape_id not in self._cache:
+            g = self._shape(shape_id)
+            self._cache[shape_id] = {name: g[name][...] for name in
+                                     ("ed_reference", "tets", "endo", "epi", "base", "params", "coefficients")}
+        return self._cache[shape_id]
+
+    def mesh(self, shape_id: int):
+        """The shape's ED mesh as a solver TetMesh (mm)."""
+        from solver.mesh import TetMesh
+
+        s = self._static(shape_id)
+        return TetMesh(s["ed_reference"].astype(float), s["tets"].astype(np.int64), s["endo"].astype(np.int64),
+                       s["epi"].astype(np.int64), s["base"].astype(np.int64),
+                       {"shape_id": shape_id, "coefficients": s["coefficients"].tolist()})
+
+    def status(self, shape_id: int) -> np.ndarray:
+        return self._shape(shape_id)["status"][...]
+
+    def stats(self, shape_id: int) -> np.ndarray:
+        return self._shape(shape_id)["stats"][...]
+
+    def done_cases(self, shape_ids=None) -> list[tuple[int, int]]:
+        out = []
+        for s in (self.shape_ids() if shape_ids is None else shape_ids):
+            out.extend((s, int(k)) for k in np.flatnonzero(self.status(s) == DONE))
+        return out
+
+    def case(self, shape_id: int, k: int, _status=None, _stats=None) -> Case:
+        status = self.status(shape_id) if _status is None else _status
+        if not 0 <= k < self.n_cases:
+            raise StoreError(f"case {k} out of range 0..{self.n_cases - 1}")
+        if status[k] != DONE:
+            raise StoreError(f"case {k} of shape {shape_id} is {STATUS_NAMES[int(status[k])]}, not done")
+        g = self._shape(shape_id)
+        s = self._static(shape_id)
+        unloaded, loaded = g["unloaded"][k], g["loaded"][k]
+        if not (np.all(np.isfinite(unloaded)) and np.all(np.isfinite(loaded))):
+            raise StoreError(f"case {k} of shape {shape_id} is marked done but its data are not finite")
+        row = (self.stats(shape_id) if _stats is None else _stats)[k]
+        return Case(shape_id, int(k), dict(zip(PARAM_NAMES, map(float, s["params"][k]))), unloaded, loaded,
+                    s["ed_reference"], s["tets"], dict(zip(self.stat_names, map(float, row))))
+
+    def iter_done(self, shape_ids=None):
+        for s in (self.shape_ids() if shape_ids is None else shape_ids):
+            status, stats = self.status(s), self.stats(s)
+            for k in np.flatnonzero(status == DONE):
+                yield self.case(s, int(k), status, stats)
+
+
+def read_done_cases(location, shape_ids=None, storage_options: dict | None = None):
+    """Every done case of the store (optionally of some shapes), as Case records."""
+    yield from PairReader(location, storage_options).iter_done(shape_ids)
+
+
+# --------------------------------------------------------------------------- export (ParaView)
+
+
+def case_to_meshio(reader: PairReader, shape_id: int, k: int, geometry: str = "unloaded"):
+    """A meshio mesh of a done case: points = the unloaded (or loaded) geometry; point data
+    `displacement` = loaded − unloaded (mm), `ed_reference`; tets + tagged surface triangles."""
+    import meshio
+
+    from .meshfiles import SURFACE_CODES, TAG_NAME
+
+    case = reader.case(shape_id, k)
+    s = reader._static(shape_id)
+    if geometry not in ("unloaded", "loaded"):
+        raise ValueError("geometry must be 'unloaded' or 'loaded'")
+    points = (case.unloaded if geometry == "unloaded" else case.loaded).astype(np.float64)
+    tris = np.vstack([s["endo"], s["epi"], s["base"]])
+    codes = np.concatenate([np.full(len(s[n]), SURFACE_CODES[n], np.int32) for n in ("endo", "epi", "base")])
+    mesh = meshio.Mesh(points, [("tetra", s["tets"].astype(np.int64)), ("triangle", tris.astype(np.int64))],
+                       point_data={"displacement": (case.loaded - case.unloaded).astype(np.float64),
+                                   "ed_reference": case.ed_reference.astype(np.float64)},
+                       cell_data={TAG_NAME: [np.zeros(len(s["tets"]), np.int32), codes]})
+    mesh.field_data = {}
+    return mesh
+
+
+def export_case(location, shape_id: int, k: int, out, geometry: str = "unloaded") -> dict:
+    """Write a done case as a mesh file (VTU etc.), atomically. Returns the case parameters."""
+    import meshio
+
+    from .meshfiles import _format_of, atomic_write
+
+    reader = PairReader(location)
+    mesh = case_to_meshio(reader, shape_id, k, geometry)
+    out = Path(out)
+    atomic_write(out, lambda tmp: meshio.write(tmp, mesh, file_format=_format_of(out)))
+    return reader.case(shape_id, k).params
+
+
+# --------------------------------------------------------------------------- summary (heartctl status)
+
+
+def _reason_pattern(reason: str) -> str:
+    return re.sub(r"[-+]?\d+(\.\d+)?([eE][-+]?\d+)?", "#", reason).strip()
+
+
+def _percentiles(values: np.ndarray) -> dict | None:
+    values = values[np.isfinite(values)]
+    if values.size == 0:
+        return None
+    p = np.percentile(values, [50, 90, 99])
+    return {"p50": float(p[0]), "p90": float(p[1]), "p99": float(p[2]), "max": float(values.max()),
+            "mean": float(values.mean())}
+
+
+def summarize(location, storage_options: dict | None = None) -> dict:
+    """Counts by status, failure reasons grouped, throughput of the latest run, per-phase time
+    percentiles (s) and an ETA."""
+    reader = PairReader(location, storage_options)
+    attrs = reader.attrs
+    grid = attrs["grid"]
+    n_shapes = int(grid["shapes"])
+    K = reader.n_cases
+    names = reader.stat_names
+    col = {n: i for i, n in enumerate(names)}
+    ready = set(reader.shape_ids())
+    counts = {"done": 0, "failed": 0, "pending": 0}
+    groups: dict[str, dict] = {}
+    hosts: dict[str, int] = {}
+    all_stats = []
+    for s in range(n_shapes):
+        if s not in ready:
+            counts["pending"] += K
+            continue
+        status = reader.status(s)
+        stats = reader.stats(s)
+        g = reader._shape(s)
+        failures = g.attrs.get("failures", {})
+        counts["done"] += int((status == DONE).sum())
+        counts["failed"] += int((status == FAILED).sum())
+        counts["pending"] += int((status == PENDING).sum())
+        for k in np.flatnonzero(status == FAILED):
+            reason = failures.get(str(k), "unknown")
+            pat = _reason_pattern(reason)
+            entry = groups.setdefault(pat, {"reason": pat, "count": 0, "example": reason, "cases": []})
+            entry["count"] += 1
+            if len(entry["cases"]) < 5:
+                entry["cases"].append([s, int(k)])
+        for k, host in g.attrs.get("hosts", {}).items():
+            if status[int(k)] == DONE:
+                hosts[host] = hosts.get(host, 0) + 1
+        all_stats.append(stats[status == DONE])
+    done_stats = np.vstack(all_stats) if all_stats else np.zeros((0, len(names)))
+    phases = {
+        "inverse_s": done_stats[:, col["inverse_wall_s"]],
+        "forward_s": done_stats[:, col["forward_wall_s"]],
+        "task_solve_s": done_stats[:, col["task_wall_s"]],
+        "queue_s": done_stats[:, col["started_at"]] - done_stats[:, col["submitted_at"]],
+        "result_to_stored_s": done_stats[:, col["stored_at"]] - done_stats[:, col["finished_at"]],
+    }
+    runs = attrs.get("runs", [])
+    throughput = None
+    last_run = None
+    if runs:
+        idx = len(runs) - 1
+        last = runs[idx]
+        in_run = done_stats[done_stats[:, col["run"]] == idx]
+        if len(in_run):
+            span = float(np.nanmax(in_run[:, col["stored_at"]]) - last["started_at"])
+            if span > 0:
+                throughput = len(in_run) / span
+        last_run = {"index": idx, "started": last.get("started"), "host": last.get("host"),
+                    "ended": last.get("ended_at") is not None, "done_in_run": int(len(in_run)),
+                    "cpus": last.get("cpus")}
+    total = n_shapes * K
+    eta = counts["pending"] / throughput if throughput and counts["pending"] else (0.0 if not counts["pending"] else None)
+    mesh_failures = attrs.get("mesh_failures", {})
+    return {
+        **counts,
+        "total": total,
+        "shapes": n_shapes,
+        "shapes_ready": len(ready),
+        "cases_per_shape": K,
+        "fidelity": attrs.get("fidelity"),
+        "seed": attrs.get("seed"),
+        "mesh_nodes": attrs.get("mesh_nodes"),
+        "grid": grid,
+        "failure_reasons": sorted(groups.values(), key=lambda e: -e["count"]),
+        "mesh_failures": mesh_failures,
+        "throughput_cases_per_s": throughput,
+        "throughput_cases_per_h": throughput * 3600 if throughput else None,
+        "eta_s": eta,
+        "phase_percentiles_s": {k: _percentiles(v) for k, v in phases.items()},
+        "hosts": hosts,
+        "runs": len(runs),
+        "last_run": last_run,
+        "store_bytes": store_bytes(location),
+    }
+
+
+def store_bytes(location) -> int | None:
+    if is_url(location):
+        return None
+    total = 0
+    for root, _, files in os.walk(_local_path(location)):
+        for f in files:
+            try:
+                total += os.path.getsize(os.path.join(root, f))
+            except OSError:
+                pass
+    return total
+
+
+def encoded_case_bytes(unloaded: np.ndarray, loaded: np.ndarray) -> int:
+    """Bytes one case takes in the store (both chunks, compressed as the store does)."""
+    import zarr
+    from zarr.storage import MemoryStore
+
+    store = MemoryStore()
+    g = zarr.open_group(store, mode="w", zarr_format=3)
+    n = np.asarray(unloaded).shape[0]
+    for name, x in (("unloaded", unloaded), ("loaded", loaded)):
+        a = g.create_array(name, shape=(1, n, 3), chunks=(1, n, 3), dtype=COORD_DTYPE, fill_value=np.nan,
+                           compressors=_compressor())
+        a[0] = np.asarray(x, dtype=COORD_DTYPE)
+    return sum(len(v.to_bytes()) for k, v in store._store_dict.items() if "/c/" in k)
+
+
+def attrs_json(attrs: dict) -> str:
+    return json.dumps(_jsonable(attrs), sort_keys=True)

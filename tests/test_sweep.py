@@ -1,0 +1,243 @@
+"""The Ray sweep: failures recorded and skipped over, resume, a killed worker, a killed driver,
+bad arguments. One two-CPU Ray for the module; coarse meshes (~200 nodes), the fast preset."""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from typer.testing import CliRunner
+
+from orchestrator.grid import SweepSpec
+from orchestrator.sweep import init_ray, run_sweep
+from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, summarize
+
+ROOT = Path(__file__).resolve().parents[1]
+COL = {n: i for i, n in enumerate(STAT_NAMES)}
+
+
+def spec(**kw) -> SweepSpec:
+    base = dict(shapes=1, pressure_mmhg=(8.0,), stiffness_pa=(100.0,), helix_endo_deg=(60.0,),
+                helix_epi_deg=(-60.0,), fidelity="fast", seed=0, nodes=200)
+    base.update(kw)
+    return SweepSpec(**base).validate()
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    import ray
+
+    ctx = init_ray(num_cpus=2, local=True)
+    yield ctx.address_info["gcs_address"]
+    ray.shutdown()
+
+
+def _stats(location, shape=0):
+    r = PairReader(location)
+    return r.status(shape), r.stats(shape)
+
+
+def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_path):
+    loc = str(tmp_path / "f.zarr")
+    sp = spec(pressure_mmhg=(8.0, 1e5, 12.0))  # 1e5 mmHg cannot be inflated
+    rep = run_sweep(sp, loc, progress=False)
+    assert (rep.done, rep.failed, rep.submitted) == (2, 1, 3)
+    status, stats = _stats(loc)
+    assert status.tolist() == [DONE, FAILED, DONE]
+    assert stats[1, COL["solve_attempts"]] == 2  # retried once with the robust setting
+    s = summarize(loc)
+    assert (s["done"], s["failed"], s["pending"]) == (2, 1, 0)
+    assert s["failure_reasons"][0]["cases"] == [[0, 1]]
+    assert "load" in s["failure_reasons"][0]["example"]
+
+    # resume: nothing is resubmitted; done cases keep their data and timestamps
+    before = PairReader(loc).case(0, 0)
+    rep2 = run_sweep(sp, loc, progress=False)
+    assert rep2.submitted == 0 and rep2.done_before == 2 and rep2.failed_before == 1
+    status2, stats2 = _stats(loc)
+    np.testing.assert_array_equal(stats2[[0, 2]], stats[[0, 2]])
+    np.testing.assert_array_equal(PairReader(loc).case(0, 0).unloaded, before.unloaded)
+    # --retry-failed reruns only the failed case (and it fails again, with its reason)
+    rep3 = run_sweep(sp, loc, progress=False, retry_failed=True)
+    assert rep3.submitted == 1 and rep3.records == [(0, 1, FAILED)]
+    _, stats3 = _stats(loc)
+    np.testing.assert_array_equal(stats3[[0, 2]], stats[[0, 2]])
+    assert len(inspect_runs(loc)) == 3
+
+
+def inspect_runs(loc):
+    return zarr.open_group(loc, mode="r").attrs["runs"]
+
+
+def _busy_case_workers() -> list[int]:
+    """PIDs of Ray worker processes currently running a pair (process title ray::run_case)."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            cmd = (d / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if cmd.startswith(b"ray::run_case"):
+            pids.append(int(d.name))
+    return pids
+
+
+def test_killed_worker_sweep_still_finishes(ray_cluster, tmp_path):
+    loc = str(tmp_path / "w.zarr")
+    sp = spec(pressure_mmhg=(6.0, 8.0, 10.0, 12.0), stiffness_pa=(100.0, 200.0))
+    killed = []
+
+    def on_event(ev):
+        if killed:
+            return
+        for pid in _busy_case_workers():
+            os.kill(pid, signal.SIGKILL)  # a worker in the middle of a pair
+            killed.append(pid)
+            break
+
+    rep = run_sweep(sp, loc, progress=False, on_event=on_event)
+    assert killed, "no busy worker was found to kill"
+    assert rep.done == sp.n_cases and rep.failed == 0
+    ks = [k for _, k, _ in rep.records]
+    assert sorted(ks) == list(range(sp.n_cases))  # every case recorded exactly once
+    status, stats = _stats(loc)
+    assert (status == DONE).all()
+    for c in PairReader(loc).iter_done():
+        assert np.isfinite(c.unloaded).all() and np.isfinite(c.loaded).all()
+
+
+def _heartctl() -> list[str]:
+    exe = Path(sys.executable).with_name("heartctl")
+    return [str(exe)] if exe.exists() else [sys.executable, "-m", "cli"]
+
+
+def _done_count(loc) -> int:
+    try:
+        r = PairReader(loc)
+        return sum(int((r.status(s) == DONE).sum()) for s in r.shape_ids())
+    except Exception:
+        return 0
+
+
+def test_driver_killed_then_rerun_finishes(ray_cluster, tmp_path):
+    loc = str(tmp_path / "d.zarr")
+    args = _heartctl() + ["generate", "--store", loc, "--address", ray_cluster, "--shapes", "2",
+                          "--pressures", "6,8,10,12", "--stiffness", "100", "--endo", "60", "--epi=-60",
+                          "--fidelity", "fast", "--nodes", "200"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None and _done_count(loc) < 2:
+        time.sleep(0.2)
+    assert proc.poll() is None, f"driver ended before it was killed:\n{proc.stdout.read().decode()[-2000:]}"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    proc.stdout.close()
+
+    reader = PairReader(loc)  # opens cleanly after the kill
+    done_before = {}
+    for s in reader.shape_ids():
+        st, stats = reader.status(s), reader.stats(s)
+        for k in np.flatnonzero(st == DONE):
+            done_before[(s, int(k))] = stats[k].copy()
+    assert 2 <= len(done_before) < 8
+
+    out = subprocess.run(args + ["--json"], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    rep = json.loads(out.stdout.strip().splitlines()[-1])
+    assert rep["done_before"] == len(done_before)
+    assert rep["submitted"] == 8 - len(done_before)  # no done case recomputed
+    reader = PairReader(loc)
+    assert reader.shape_ids() == [0, 1]
+    assert len(reader.done_cases()) == 8
+    for (s, k), row in done_before.items():
+        np.testing.assert_array_equal(reader.stats(s)[k], row)
+    for c in reader.iter_done():
+        assert np.isfinite(c.unloaded).all() and np.isfinite(c.loaded).all()
+    assert not list(Path(loc).rglob("*.partial"))
+    assert len(zarr.open_group(loc, mode="r").attrs["runs"]) == 2
+
+
+# --------------------------------------------------------------------------- bad arguments (no Ray needed)
+
+
+def _snapshot(path: Path) -> dict:
+    if path.is_file():
+        return {"": hashlib.sha256(path.read_bytes()).hexdigest()}
+    return {str(p.relative_to(path)): (hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir")
+            for p in sorted(path.rglob("*"))}
+
+
+def _run_cli(args):
+    from cli import app
+
+    res = CliRunner().invoke(app, args)
+    err = getattr(res, "stderr", res.output)
+    return res.exit_code, err
+
+
+@pytest.fixture
+def small_store(tmp_path):
+    sp = spec(pressure_mmhg=(8.0, 12.0))
+    PairStore.create(str(tmp_path / "s.zarr"), sp.store_attrs())
+    return tmp_path / "s.zarr"
+
+
+SMALL = ["--shapes", "1", "--pressures", "8,12", "--stiffness", "100", "--endo", "60", "--epi=-60",
+         "--fidelity", "fast", "--nodes", "200"]
+
+
+@pytest.mark.parametrize("case", ["fidelity", "empty", "file", "schema", "grid", "seed", "version"])
+def test_bad_arguments_exit_2_one_line_store_untouched(tmp_path, small_store, case):
+    target = small_store
+    args = SMALL[:]
+    if case == "fidelity":
+        args[args.index("fast")] = "medium"
+    elif case == "empty":
+        args[args.index("8,12")] = ""
+    elif case == "file":
+        target = tmp_path / "file.zarr"
+        target.write_text("not a store")
+    elif case == "schema":
+        target = tmp_path / "other.zarr"
+        zarr.open_group(str(target), mode="w").attrs.update({"schema": "other", "schema_version": 1})
+    elif case == "grid":
+        args[args.index("8,12")] = "8,10"
+    elif case == "seed":
+        args += ["--seed", "3"]
+    elif case == "version":
+        zarr.open_group(str(small_store), mode="r+").attrs.update({"schema_version": 2})
+    before = _snapshot(target)
+    code, err = _run_cli(["generate", "--store", str(target)] + args)
+    assert code == 2
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("heartctl: error:"), err
+    assert _snapshot(target) == before
+
+
+def test_status_and_dry_run_cli(tmp_path, small_store):
+    code, err = _run_cli(["status", "--store", str(tmp_path / "absent.zarr")])
+    assert code == 2 and "no heartctl store" in err
+    from cli import app
+
+    res = CliRunner().invoke(app, ["status", "--store", str(small_store), "--json"])
+    assert res.exit_code == 0
+    s = json.loads(res.stdout)
+    assert (s["done"], s["failed"], s["pending"]) == (0, 0, 2)
+    new = tmp_path / "plan.zarr"
+    res = CliRunner().invoke(app, ["generate", "--store", str(new), "--dry-run", "--json"] + SMALL)
+    assert res.exit_code == 0, res.output
+    plan = json.loads(res.stdout.strip().splitlines()[-1])
+    assert plan["cases"] == 2 and plan["to_run"] == 2 and plan["core_hours"] > 0
+    assert plan["calibration"]["ok"] and plan["calibration"]["case_bytes"] > 0
+    assert not new.exists()  # a dry run writes nothing
