@@ -6,6 +6,8 @@ cost a forward/back substitution; PARDISO's symbolic analysis is redone only whe
 pattern changes."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
@@ -52,6 +54,9 @@ class SparseSolver:
 
         if self._pardiso is None:
             ps = pypardiso.PyPardisoSolver(mtype=11)
+            # pypardiso globs site-packages for libmkl_rt on every construction (~0.5 s);
+            # remember the library it found so later solvers in this process skip the search
+            os.environ.setdefault("PYPARDISO_MKL_RT", ps.libmkl._name)
             ps.set_iparm(1, 1)  # use the iparm values set here, not MKL's defaults
             ps.set_iparm(2, 2)  # METIS nested-dissection ordering
             ps.set_iparm(10, 13)  # pivot perturbation 1e-13 (saddle-point systems)
