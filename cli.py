@@ -267,6 +267,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              fidelity: str = typer.Option(None, "--fidelity", help="Solver preset: fast | accurate (default accurate)."),
              seed: int = typer.Option(None, "--seed", help="Shape-model seed (default 0)."),
              nodes: int = typer.Option(None, "--nodes", help="Target mesh node count (default 800; --local 350)."),
+             meshes: str = typer.Option(None, "--meshes", help="Use your ED meshes as the shape set: a folder or a glob of mesh files (any meshio format; readable by every worker)."),
+             units: Units = typer.Option(None, "--units", help="Length unit of the --meshes files (default mm)."),
              address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT (default: start a local Ray on all cores)."),
              num_cpus: int = typer.Option(None, "--num-cpus", help="CPUs of the local Ray (default: all cores; --local 2)."),
              local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
@@ -278,6 +280,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     Rerunning on the same store resumes it."""
     from orchestrator.grid import AXIS_FLAGS, parse_axis, resolve_spec
     from orchestrator.sweep import check_request
+    from solver.mesh import MeshError
     from storage.store import inspect_store
 
     try:
@@ -289,13 +292,22 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             raise ValueError("--local starts its own two-core Ray; it does not take --address")
         if address is not None and num_cpus is not None:
             raise ValueError("--num-cpus sizes a local Ray; a cluster joined with --address has its own CPUs")
-        explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes}
+        explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes,
+                    "mesh_units": units.value if units is not None else None}
+        if meshes is not None:
+            from orchestrator.grid import find_meshes
+            from storage.meshfiles import read_mesh
+
+            explicit["meshes"] = find_meshes(meshes)
+            explicit["shapes"] = explicit["shapes"] or len(explicit["meshes"])
+            for path in explicit["meshes"]:  # every file must be a usable ED mesh before anything runs
+                read_mesh(path, explicit["mesh_units"] or "mm")
         for axis, text in zip(AXIS_FLAGS, (pressures, stiffness, endo, epi)):
             explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
         stored = inspect_store(store)
         spec = resolve_spec(explicit, local=local, stored_attrs=stored)
         stored = check_request(spec, store)
-    except _store_errors() as exc:
+    except (*_store_errors(), MeshError) as exc:
         fail(str(exc))
     if dry_run:
         from orchestrator.plan import cluster_cores, make_plan

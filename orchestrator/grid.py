@@ -32,10 +32,13 @@ class SweepSpec:
     seed: int = 0
     nodes: int = MESH_LEVELS["default"]
     base: str = "sliding"
+    meshes: tuple = ()  # user ED mesh files as the shape set (shape id = position), instead of the model
+    mesh_units: str = "mm"
 
     def __post_init__(self):
         for axis in AXES:
             object.__setattr__(self, axis, tuple(float(v) for v in getattr(self, axis)))
+        object.__setattr__(self, "meshes", tuple(str(m) for m in self.meshes))
 
     # ---- checks
 
@@ -64,7 +67,13 @@ class SweepSpec:
             raise ValueError(f"--nodes must be ≥ 50, got {self.nodes}")
         if self.base not in BASE_CONDITIONS:
             raise ValueError(f"unknown base condition {self.base!r}")
+        if self.meshes and self.shapes != len(self.meshes):
+            raise ValueError(f"--shapes {self.shapes} does not match the {len(self.meshes)} mesh files given")
         return self
+
+    def mesh_source(self, shape_id: int) -> tuple:
+        """(mesh file, units) of a user-supplied shape, or () for a shape-model member."""
+        return (self.meshes[shape_id], self.mesh_units) if self.meshes else ()
 
     # ---- cases
 
@@ -99,6 +108,9 @@ class SweepSpec:
             "seed": self.seed,
             "mesh_nodes": self.nodes,
             "base": self.base,
+            "shape_source": "files" if self.meshes else "shape model",
+            "meshes": [{"path": m, "sha256": file_digest(m)} for m in self.meshes],
+            "mesh_units": self.mesh_units,
             "n_cases_per_shape": self.cases_per_shape,
             "case_params": self.case_params().tolist(),
             "case_order": "k = ((iP*nC + iC)*nEndo + iEndo)*nEpi + iEpi",
@@ -110,7 +122,8 @@ class SweepSpec:
     def from_attrs(cls, attrs: dict) -> "SweepSpec":
         g = attrs["grid"]
         return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
-                   seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"))
+                   seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"),
+                   meshes=tuple(m["path"] for m in attrs.get("meshes", [])), mesh_units=attrs.get("mesh_units", "mm"))
 
     def conflicts(self, attrs: dict) -> list[str]:
         """How this request differs from the store's (empty: it may resume that store)."""
@@ -129,7 +142,42 @@ class SweepSpec:
             out.append(f"--nodes {self.nodes} (store has {stored.nodes})")
         if stored.base != self.base:
             out.append(f"base {self.base} (store has {stored.base})")
+        stored_digests = [m["sha256"] for m in attrs.get("meshes", [])]
+        if stored_digests != [file_digest(m) for m in self.meshes]:
+            out.append(f"--meshes ({len(self.meshes)} files; the store was made from "
+                       f"{len(stored_digests) or 'the shape model'}{' other files' if stored_digests else ''})")
+        elif self.meshes and stored.mesh_units != self.mesh_units:
+            out.append(f"--units {self.mesh_units} (store has {stored.mesh_units})")
         return out
+
+
+def file_digest(path: str) -> str:
+    """sha256 of a file (user meshes are identified by content, not by name)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+MESH_SUFFIXES = (".vtu", ".vtk", ".msh", ".xdmf", ".mesh", ".med", ".inp", ".ply", ".stl", ".obj", ".off")
+
+
+def find_meshes(pattern: str) -> tuple:
+    """A folder (its mesh files, sorted) or a glob → absolute paths; ValueError if none."""
+    import glob
+    from pathlib import Path
+
+    path = Path(pattern)
+    if path.is_dir():
+        files = sorted(str(p.resolve()) for p in path.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    else:
+        files = sorted(str(Path(p).resolve()) for p in glob.glob(pattern) if Path(p).is_file())
+    if not files:
+        raise ValueError(f"--meshes {pattern}: no mesh files found")
+    return tuple(files)
 
 
 def _fmt(values) -> str:

@@ -29,7 +29,7 @@ def existing_counts(location: str, spec: SweepSpec) -> dict:
 def calibrate(spec: SweepSpec) -> dict:
     """Mesh shape 0 and solve one mid-grid pair at the requested fidelity (single thread)."""
     t0 = time.perf_counter()
-    m = mesh_shape(0, spec.seed, spec.nodes)
+    m = mesh_shape(0, spec.seed, spec.nodes, *spec.mesh_source(0))
     mesh_s = time.perf_counter() - t0
     params = spec.mid_params()
     res = run_case(m["mesh"], params, spec.fidelity, spec.base)

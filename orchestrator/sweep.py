@@ -191,7 +191,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
             t1 = time.perf_counter()
             missing = [s for s in range(spec.shapes) if not store.shape_ready(s)]
             bar.phase(f"meshing {len(missing)} shapes" if missing else "meshes ready")
-            refs = {mesh_remote.remote(s, spec.seed, spec.nodes): s for s in missing}
+            refs = {mesh_remote.remote(s, spec.seed, spec.nodes, *spec.mesh_source(s)): s for s in missing}
             while refs:
                 ready, _ = ray.wait(list(refs), num_returns=1)
                 s = refs.pop(ready[0])

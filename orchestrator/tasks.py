@@ -19,22 +19,31 @@ def _single_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
-def mesh_shape(shape_id: int, seed: int, nodes: int) -> dict:
-    """Mesh one shape-model member. Returns the TetMesh and its shape coefficients."""
+def mesh_shape(shape_id: int, seed: int, nodes: int, mesh_file: str | None = None, units: str = "mm") -> dict:
+    """Mesh one shape-model member, or read a user's ED mesh file (then `seed` and `nodes` do not
+    apply and the coefficients are NaN). Returns the TetMesh and its shape coefficients."""
     _single_thread()
     from solver.meshing import mesh_lv
-    from solver.shape_model import lv_shape
+    from solver.shape_model import MODES, lv_shape
 
     t0 = time.perf_counter()
-    shape = lv_shape(int(shape_id), int(seed))
-    mesh = mesh_lv(shape, int(nodes))
+    if mesh_file is not None:
+        from storage.meshfiles import read_mesh
+
+        mesh = read_mesh(mesh_file, units)
+        coefficients = np.full(len(MODES), np.nan)
+        cavity_ml = float("nan")
+    else:
+        shape = lv_shape(int(shape_id), int(seed))
+        mesh = mesh_lv(shape, int(nodes))
+        coefficients = np.asarray(shape.coefficients, dtype=float)
+        cavity_ml = float(shape.cavity_volume_ml())
     info = {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in mesh.info.items()
             if isinstance(v, (int, float, str, np.floating, np.integer))}
-    info["cavity_volume_ml"] = float(shape.cavity_volume_ml())
+    info["cavity_volume_ml"] = cavity_ml
     info["mesh_wall_s"] = time.perf_counter() - t0
     info["host"] = socket.gethostname()
-    return {"shape_id": int(shape_id), "mesh": mesh, "coefficients": np.asarray(shape.coefficients, dtype=float),
-            "info": info}
+    return {"shape_id": int(shape_id), "mesh": mesh, "coefficients": coefficients, "info": info}
 
 
 def robust_fidelity(fidelity):

@@ -1,0 +1,34 @@
+"""generate --meshes: a user's ED meshes (any meshio format, any unit) as the shape set."""
+import numpy as np
+from typer.testing import CliRunner
+
+from cli import app
+from solver.meshing import mesh_lv
+from solver.shape_model import lv_shape
+from storage.meshfiles import write_mesh
+from storage.store import PairReader
+
+
+def test_generate_from_user_meshes_in_cm_and_resume(tmp_path):
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    originals = [mesh_lv(lv_shape(i), 150) for i in range(2)]
+    for i, m in enumerate(originals):
+        write_mesh(folder / f"patient{i}.vtu", m.with_nodes(m.nodes), units="cm")
+    store = tmp_path / "user.zarr"
+    args = ["generate", "--meshes", str(folder), "--units", "cm", "--store", str(store), "--pressures", "8",
+            "--stiffness", "150", "--endo", "60", "--epi=-60", "--fidelity", "fast", "--num-cpus", "1"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    reader = PairReader(str(store))
+    assert reader.attrs["shape_source"] == "files" and len(reader.attrs["meshes"]) == 2
+    for i, m in enumerate(originals):
+        np.testing.assert_allclose(reader.mesh(i).nodes, m.nodes, atol=1e-9)  # cm → mm
+        assert np.all(np.isnan(reader._static(i)["coefficients"]))
+    assert len(reader.done_cases()) == 2
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0 and "nothing to run" in again.output
+    # the same store with other files is refused
+    (folder / "patient1.vtu").unlink()
+    other = CliRunner().invoke(app, args)
+    assert other.exit_code == 2 and "--meshes" in other.output
