@@ -20,11 +20,14 @@ _SYM = 0.5 * (np.einsum("ac,bd->abcd", np.eye(3), np.eye(3)) + np.einsum("ad,bc-
 class Supports:
     """Displacement supports: on the dofs of `facets`, the listed components are fixed at zero.
     With `gauge`, the in-plane rigid motions left free (x, y translation, rotation about z) are
-    removed by three Lagrange multipliers on the mean motion of those dofs."""
+    removed by three Lagrange multipliers on the mean motion of those dofs. An optional normal
+    spring on `spring_facets` (reference normal N) resists wall motion along N."""
 
     facets: np.ndarray
     components: tuple[int, ...]
     gauge: bool = False
+    spring_facets: np.ndarray | None = None  # boundary triangles with a normal spring (Robin condition)
+    spring_pa_per_mm: float = 0.0  # traction −k (u·N) N on them, k in Pa/mm
 
 
 class SparsityPattern:
@@ -113,6 +116,24 @@ class MechanicsProblem:
             self._stab = None
         if getattr(self, "n_gauge", 0) or self.supports.gauge:
             self._gauge_values = self._gauge_rows()
+        self._spring = self._spring_matrix() if self._has_spring() else None
+
+    def _has_spring(self) -> bool:
+        sp_f = self.supports.spring_facets
+        return sp_f is not None and len(sp_f) > 0 and self.supports.spring_pa_per_mm > 0
+
+    def _spring_matrix(self) -> np.ndarray:
+        """Element matrices [nf, 3nb, 3nb] of ∫ k (u·N)(δu·N) dA on the reference spring facets."""
+        fq = self.fq
+        sdofs = facet_dofs(self.dofmap, np.asarray(self.supports.spring_facets))
+        X = self.dofmap.points[sdofs]
+        a1 = np.einsum("fbi,bq->fqi", X, fq.dxi[:, 0])
+        a2 = np.einsum("fbi,bq->fqi", X, fq.dxi[:, 1])
+        n = np.cross(a1, a2)  # N dA per unit parametric area
+        nn = n[..., :, None] * n[..., None, :] / np.linalg.norm(n, axis=-1)[..., None, None]
+        K = self.supports.spring_pa_per_mm * np.einsum("bq,cq,fqij,q->fbicj", fq.values, fq.values, nn, fq.weights)
+        self._spring_udofs = (3 * sdofs[:, :, None] + np.arange(3)).reshape(len(sdofs), 3 * sdofs.shape[1])
+        return K.reshape(len(sdofs), self._spring_udofs.shape[1], -1)
 
     def _gauge_rows(self) -> np.ndarray:
         dofs = np.unique(facet_dofs(self.dofmap, np.asarray(self.supports.facets)))
@@ -136,6 +157,10 @@ class MechanicsProblem:
         nf = fu.shape[1]
         rows.append(np.repeat(fu, nf, axis=1).ravel())
         cols.append(np.tile(fu, (1, nf)).ravel())
+        if self._spring is not None:
+            su = self._spring_udofs
+            rows.append(np.repeat(su, su.shape[1], axis=1).ravel())
+            cols.append(np.tile(su, (1, su.shape[1])).ravel())
         if self.mixed:
             cp = self.n_u + self.tets
             up_r = np.repeat(cu, 4, axis=1).ravel()
@@ -212,6 +237,9 @@ class MechanicsProblem:
         n = np.cross(a1, a2)
         Rf = pressure_pa * np.einsum("bq,fqi,q->fbi", fq.values, n, fq.weights).reshape(len(xf), self.facet_udofs.shape[1])
         np.add.at(full, self.facet_udofs.ravel(), Rf.ravel())
+        if self._spring is not None:
+            us = z_full[: self.n_u][self._spring_udofs]
+            np.add.at(full, self._spring_udofs.ravel(), np.einsum("fab,fb->fa", self._spring, us).ravel())
         if self.n_gauge:
             lam_g = z_full[self.n_u + self.n_p :]
             uflat = z_full[: self.n_u]
@@ -244,6 +272,8 @@ class MechanicsProblem:
         dn = (np.einsum("cq,fqij->fqcij", fq.dxi[:, 1], sk1) - np.einsum("cq,fqij->fqcij", fq.dxi[:, 0], sk2))
         Kf = pressure_pa * np.einsum("bq,fqcij,q->fbicj", fq.values, dn, fq.weights)
         values = [Kuu.ravel(), Kf.ravel()]
+        if self._spring is not None:
+            values.append(self._spring.ravel())
         if self.mixed:
             cof_grad = np.einsum("eqiI,eqaI->eqai", cof, cq.grads) * dV[:, :, None, None]
             Kup = np.einsum("eqai,cq->eaic", cof_grad, cq.lam, optimize=True)

@@ -18,12 +18,17 @@ from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
 from .parameters import CaseParameters
 
-BASE_CONDITIONS = ("sliding", "clamped")
+BASE_CONDITIONS = ("sliding", "clamped", "spring")
+EPI_SPRING_PA_PER_MM = 9.0  # the original pipeline's 90 Pa per unit length, with lengths in cm
 
 
 def _supports(mesh: TetMesh, base: str) -> Supports:
+    """sliding: base z fixed, in-plane rigid motions removed; clamped: base fixed; spring: sliding
+    plus a normal spring on the epicardium (the original paper's heartFEM pipeline)."""
     if base == "sliding":
         return Supports(mesh.base, (2,), gauge=True)
+    if base == "spring":
+        return Supports(mesh.base, (2,), gauge=True, spring_facets=mesh.epi, spring_pa_per_mm=EPI_SPRING_PA_PER_MM)
     if base == "clamped":
         return Supports(mesh.base, (0, 1, 2), gauge=False)
     raise ValueError(f"unknown base condition {base!r}; choose {' or '.join(BASE_CONDITIONS)}")

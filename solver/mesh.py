@@ -70,7 +70,11 @@ def orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Validate coordinates and connectivity; return tets positively oriented, or raise MeshError."""
+    """Validate coordinates and connectivity; return tets positively oriented, or raise MeshError.
+
+    Node order within a tet is only a convention (many writers mix both), so each tet is reordered
+    to positive volume. An element is *inverted* when the mesh folds over it: across an interior
+    face, the two neighbouring tets then lie on the same side."""
     nodes = np.asarray(nodes, dtype=float)
     tets = np.asarray(tets)
     if nodes.ndim != 2 or nodes.shape[1] != 3 or nodes.shape[0] < 4:
@@ -86,12 +90,34 @@ def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     tiny = 1e-12 * scale
     if np.any(np.abs(vol) <= tiny):
         raise MeshError(f"mesh has {int(np.sum(np.abs(vol) <= tiny))} degenerate (zero-volume) tets")
-    neg = vol < 0
-    if neg.all():
-        tets = tets[:, [0, 2, 1, 3]]
-    elif neg.any():
-        raise MeshError(f"mesh has {int(neg.sum())} inverted tets (of {len(tets)}); fix the mesh orientation")
+    tets = orient_positive(nodes, tets)
+    folded = folded_tets(nodes, tets)
+    if folded.size:
+        raise MeshError(f"mesh has {folded.size} inverted tets (the mesh folds over them; of {len(tets)})")
     return np.ascontiguousarray(tets, dtype=np.int64)
+
+
+def folded_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Indices of positively oriented tets whose neighbour across a face lies on their own side."""
+    faces = tets[:, TET_FACES].reshape(-1, 3)  # outward for positive tets
+    owner = np.repeat(np.arange(len(tets)), 4)
+    key = np.sort(faces, axis=1)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    if counts.max() > 2:
+        raise MeshError(f"mesh is not manifold: {int((counts > 2).sum())} faces are shared by more than two tets")
+    order = np.argsort(inverse, kind="stable")
+    shared = counts[inverse[order]] == 2
+    pair_idx = order[shared].reshape(-1, 2)
+    a, b = pair_idx[:, 0], pair_idx[:, 1]
+    # the face as seen from tet a is outward for a; the opposite vertex of b must lie outside it
+    fa = faces[a]
+    opposite_b = tets[owner[b], b % 4]  # face f of a tet leaves out its vertex f
+    x = nodes[fa]
+    normal = np.cross(x[:, 1] - x[:, 0], x[:, 2] - x[:, 0])
+    side = np.einsum("ij,ij->i", nodes[opposite_b] - x[:, 0], normal)
+    bad = side <= 0
+    return np.unique(np.concatenate([owner[a][bad], owner[b][bad]]))
 
 
 def _facet_components(facets: np.ndarray) -> np.ndarray:

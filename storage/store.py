@@ -300,6 +300,10 @@ class PairStore:
         self._tables.pop(shape_id, None)
         self._handles.pop(shape_id, None)
 
+    def update_shape_attrs(self, shape_id: int, **values) -> None:
+        """Extra per-shape attributes (e.g. provenance of imported data)."""
+        self._shapes()[str(shape_id)].attrs.update(_jsonable(values))
+
     def _handle(self, shape_id: int) -> dict:
         if shape_id not in self._handles:
             g = self._shapes()[str(shape_id)]

@@ -70,10 +70,13 @@ def _write_bad(tmp_path, kind, lv_file):
         path.write_bytes(b"\x00not a mesh at all\xff" * 10)
     elif kind == "triangles":
         meshio.write(path, meshio.Mesh(lv.nodes, [("triangle", lv.epi)]))
-    elif kind == "inverted":
-        tets = lv.tets.copy()
-        tets[5] = tets[5][[1, 0, 2, 3]]
-        meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    elif kind == "inverted":  # fold the mesh: push one interior node through its neighbours
+        surface = np.unique(np.vstack([lv.endo, lv.epi, lv.base]))
+        v = np.setdiff1d(np.arange(lv.n_nodes), surface)[0]
+        ring = np.unique(lv.tets[np.any(lv.tets == v, axis=1)])
+        nodes = lv.nodes.copy()
+        nodes[v] += 3.0 * (nodes[ring].mean(axis=0) - nodes[v]) + [0.0, 0.0, 15.0]
+        meshio.write(path, meshio.Mesh(nodes, [("tetra", lv.tets)]))
     elif kind == "nan":
         nodes = lv.nodes.copy()
         nodes[3, 1] = np.nan
@@ -166,3 +169,14 @@ def test_shape_model_mesh_written_and_read_back_identically(tmp_path):
     np.testing.assert_array_equal(back.tets, lv.tets)
     np.testing.assert_allclose(back.nodes, lv.nodes)
     assert len(back.endo) == len(lv.endo) and len(back.base) == len(lv.base)
+
+
+def test_node_order_is_a_convention_not_an_inversion(tmp_path, lv_file):
+    """Writers such as dolfin mix tet node orders; such meshes are valid and get reoriented."""
+    lv = read_mesh(lv_file)
+    tets = lv.tets.copy()
+    tets[::2] = tets[::2][:, [1, 0, 2, 3]]
+    path = tmp_path / "mixed.vtu"
+    meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    back = read_mesh(path)
+    assert len(back.endo) == len(lv.endo)

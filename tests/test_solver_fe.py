@@ -28,7 +28,7 @@ def coarse_lv():
 
 
 @pytest.mark.parametrize("preset", PRESET_NAMES)
-@pytest.mark.parametrize("base", ["sliding", "clamped"])
+@pytest.mark.parametrize("base", ["sliding", "clamped", "spring"])
 def test_assembled_tangent_matches_finite_differences(coarse_lv, preset, base):
     problem = lv_problem(coarse_lv, CaseParameters(10.0, 100.0, 65.0, -65.0), preset, base)
     rng = np.random.default_rng(3)
@@ -148,3 +148,13 @@ def test_truncated_ellipsoid_mesh_for_land2_geometry():
     m = mesh_truncated_ellipsoid((7.0, 7.0, 17.0), (10.0, 10.0, 20.0), 0.0, 5.0, 300)
     assert m.nodes[:, 2].max() == pytest.approx(5.0)
     assert m.nodes[:, 2].min() == pytest.approx(-20.0, abs=0.3)
+
+
+def test_epicardial_spring_restrains_the_wall(coarse_lv):
+    params = CaseParameters(8.0, 150.0, 60.0, -60.0)
+    free = forward_solve(coarse_lv, params, "fast", "sliding")
+    sprung = forward_solve(coarse_lv, params, "fast", "spring")
+    epi = coarse_lv.epi_nodes()
+    d_free = np.linalg.norm(free.displacement[epi], axis=1).mean()
+    d_sprung = np.linalg.norm(sprung.displacement[epi], axis=1).mean()
+    assert 0.5 * d_free < d_sprung < d_free

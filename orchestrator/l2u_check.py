@@ -1,0 +1,80 @@
+"""`heartctl bench l2u`: forward-solve the original dataset's unloaded meshes with their own
+parameters using our solver, and compare with their ED meshes (mm, and as a fraction of the mean
+loading displacement), per parameter value and overall."""
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from solver.forward import SolveError
+from solver.lv import forward_solve
+from solver.parameters import CaseParameters
+from storage.store import PARAM_NAMES, PairReader
+
+
+def check_case(reader: PairReader, shape_id: int, k: int, fidelity: str, base: str) -> dict:
+    case = reader.case(shape_id, k)
+    mesh = reader.mesh(shape_id)
+    unloaded = case.unloaded.astype(float)
+    ed = case.loaded.astype(float)
+    params = CaseParameters(*(case.params[n] for n in PARAM_NAMES))
+    row = {"shape": shape_id, "case": k, **case.params}
+    loading = np.linalg.norm(ed - unloaded, axis=1)
+    row["loading_mean_mm"] = float(loading.mean())
+    t0 = time.perf_counter()
+    try:
+        ours = forward_solve(mesh.with_nodes(unloaded), params, fidelity, base).loaded_nodes
+    except SolveError as exc:
+        row.update(ok=False, reason=str(exc), wall_s=time.perf_counter() - t0)
+        return row
+    gap = np.linalg.norm(ours - ed, axis=1)
+    aligned = np.linalg.norm(align_in_plane(ours, ed) - ed, axis=1)
+    ours_disp = np.linalg.norm(ours - unloaded, axis=1)
+    row.update(ok=True, wall_s=time.perf_counter() - t0, mismatch_mean_mm=float(gap.mean()),
+               mismatch_max_mm=float(gap.max()), ours_loading_mean_mm=float(ours_disp.mean()),
+               relative=float(gap.mean() / loading.mean()), aligned_mean_mm=float(aligned.mean()),
+               aligned_relative=float(aligned.mean() / loading.mean()))
+    return row
+
+
+def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """x moved by the in-plane rigid motion (rotation about z, x/y translation) that best matches
+    target: the gauge both pipelines leave free under a sliding base."""
+    a, b = x[:, :2] - x[:, :2].mean(axis=0), target[:, :2] - target[:, :2].mean(axis=0)
+    u, _, vt = np.linalg.svd(a.T @ b)
+    d = np.sign(np.linalg.det(u @ vt))
+    rot = u @ np.diag([1.0, d]) @ vt
+    out = x.copy()
+    out[:, :2] = a @ rot + target[:, :2].mean(axis=0)
+    return out
+
+
+def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None) -> dict:
+    reader = PairReader(location)
+    keys = reader.done_cases()[:limit] if limit else reader.done_cases()
+    rows = [check_case(reader, s, k, fidelity, base) for s, k in keys]
+    ok = [r for r in rows if r["ok"]]
+    by_param = {}
+    for name in PARAM_NAMES:
+        groups = defaultdict(list)
+        for r in ok:
+            groups[r[name]].append(r)
+        by_param[name] = {v: _summary(g) for v, g in sorted(groups.items())}
+    return {"fidelity": fidelity, "base": base, "cases": len(rows), "solved": len(ok),
+            "failed": [r for r in rows if not r["ok"]], "overall": _summary(ok), "by_parameter": by_param,
+            "rows": rows}
+
+
+def _summary(rows: list) -> dict:
+    if not rows:
+        return {"n": 0}
+    return {"n": len(rows),
+            "mismatch_mean_mm": float(np.mean([r["mismatch_mean_mm"] for r in rows])),
+            "mismatch_max_mm": float(np.max([r["mismatch_max_mm"] for r in rows])),
+            "loading_mean_mm": float(np.mean([r["loading_mean_mm"] for r in rows])),
+            "ours_loading_mean_mm": float(np.mean([r["ours_loading_mean_mm"] for r in rows])),
+            "relative": float(np.mean([r["relative"] for r in rows])),
+            "aligned_mean_mm": float(np.mean([r["aligned_mean_mm"] for r in rows])),
+            "aligned_relative": float(np.mean([r["aligned_relative"] for r in rows]))}

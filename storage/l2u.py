@@ -1,0 +1,205 @@
+"""Import of the original paper's public dataset (Loaded2UnNet, SiyuMU, MIT licence):
+`ED{shape}_{P}_{C}_{endo}_{epi}.vtu` / `unloaded{shape}_…vtu` pairs in cm → done cases of our store.
+
+The file name drops the epicardial angle's sign; it is restored (θepi = −epi). Coordinates are cm and
+are converted to mm. All files of a shape must share one topology; pairs that do not are skipped
+and counted. The parameter grid of the dataset is incomplete: grid positions with no pair are
+recorded as failed with the reason "absent from the source dataset" (never as data). Shapes get
+ids 0…N−1 in the order of the source's shape numbers, which are kept as the `source_shape` attribute
+with the source split (train / val / test) and the file names of every case."""
+from __future__ import annotations
+
+import os
+import re
+import shutil
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .store import DONE, FAILED, PairStore, StoreError, inspect_store, is_url, stats_row
+
+NAME = re.compile(r"^(ED|unloaded)(\d+)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)\.vtu$")
+CM_TO_MM = 10.0
+SOURCE = "GitHub SiyuMU/Loaded2UnNet dataset (MIT licence, Copyright (c) 2025 SiyuMU)"
+ABSENT = "absent from the source dataset"
+
+
+@dataclass
+class SourcePair:
+    shape: int
+    params: tuple  # (P mmHg, C Pa, θendo °, θepi °) with the epicardial sign restored
+    ed_path: Path
+    unloaded_path: Path
+    split: str | None  # train / val / test folder of the source, if any
+
+
+@dataclass
+class ImportReport:
+    found_files: int = 0
+    pairs: int = 0
+    imported: int = 0
+    skipped: dict = field(default_factory=dict)  # reason → [file names]
+    shapes: int = 0
+
+    def skip(self, reason: str, name: str) -> None:
+        self.skipped.setdefault(reason, []).append(name)
+
+    @property
+    def n_skipped(self) -> int:
+        return sum(len(v) for v in self.skipped.values())
+
+
+def _split_of(path: Path, root: Path) -> str | None:
+    for part in path.relative_to(root).parts[:-1]:
+        if part.lower() in ("train", "val", "test"):
+            return part.lower()
+    return None
+
+
+def find_pairs(root: str | os.PathLike, report: ImportReport) -> list[SourcePair]:
+    """Every ED/unloaded pair under root (any depth), matched by their common suffix."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ValueError(f"{root} is not a folder")
+    files = {"ED": {}, "unloaded": {}}
+    for path in sorted(root.rglob("*.vtu")):
+        report.found_files += 1
+        m = NAME.match(path.name)
+        if not m:
+            report.skip("malformed name", path.name)
+            continue
+        kind, shape, p, c, endo, epi = m.groups()
+        key = (int(shape), float(p), float(c), float(endo), -float(epi))
+        if key in files[kind]:
+            report.skip("duplicate file", path.name)
+            continue
+        files[kind][key] = path
+    pairs = []
+    for key in sorted(set(files["ED"]) | set(files["unloaded"])):
+        ed, un = files["ED"].get(key), files["unloaded"].get(key)
+        if ed is None or un is None:
+            report.skip("unmatched (no partner file)", (ed or un).name)
+            continue
+        pairs.append(SourcePair(key[0], key[1:], ed, un, _split_of(ed, root)))
+    report.pairs = len(pairs)
+    return pairs
+
+
+def _read(path: Path):
+    import meshio
+
+    m = meshio.read(path)
+    tets = np.vstack([c.data for c in m.cells if c.type == "tetra"]).astype(np.int64)
+    return np.asarray(m.points, dtype=float) * CM_TO_MM, tets
+
+
+def import_l2u(root, location, progress=None) -> ImportReport:
+    """Write every readable, topology-consistent pair under root as a done case of a new store.
+    The store is built beside its final place and renamed into it at the end (local paths), so
+    an interrupted import leaves nothing behind. Raises StoreError if no pair could be imported."""
+    from solver.mesh import MeshError, make_mesh
+    from solver.shape_model import MODES
+
+    report = ImportReport()
+    if inspect_store(location) is not None or (not is_url(location) and Path(location).exists()):
+        raise StoreError(f"{location} already exists; import-l2u writes a new store")
+    pairs = find_pairs(root, report)
+    by_shape = defaultdict(list)
+    for pair in pairs:
+        by_shape[pair.shape].append(pair)
+    # read everything first: a shape is usable only with a consistent topology
+    shapes = {}
+    for shape, group in sorted(by_shape.items()):
+        ref_tets, data = None, []
+        for pair in group:
+            try:
+                ed, tets = _read(pair.ed_path)
+                un, tets_u = _read(pair.unloaded_path)
+            except Exception as exc:  # corrupt file
+                report.skip(f"unreadable ({type(exc).__name__})", pair.ed_path.name)
+                continue
+            if ed.shape != un.shape or not np.array_equal(tets, tets_u):
+                report.skip("ED and unloaded differ in node count or connectivity", pair.ed_path.name)
+                continue
+            if ref_tets is None:
+                ref_tets = tets
+            elif not np.array_equal(tets, ref_tets):
+                report.skip("topology differs from the shape's first pair", pair.ed_path.name)
+                continue
+            data.append((pair, ed, un))
+        if data:
+            shapes[shape] = (ref_tets, data)
+        if progress:
+            progress(shape)
+    if not shapes:
+        raise StoreError(f"no pair could be imported from {root} ({report.n_skipped} files skipped)")
+    axes = [sorted({d[0].params[i] for _, data in shapes.values() for d in data}) for i in range(4)]
+    grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(4, -1).T
+    index = {tuple(row): k for k, row in enumerate(grid.tolist())}
+    final = str(location)
+    staging = final if is_url(final) else str(Path(final).with_name(Path(final).name + ".importing"))
+    if not is_url(final) and Path(staging).exists():
+        shutil.rmtree(staging)
+    attrs = {
+        "grid": {"shapes": len(shapes), "pressure_mmhg": axes[0], "stiffness_pa": axes[1],
+                 "helix_endo_deg": axes[2], "helix_epi_deg": axes[3]},
+        "fidelity": "imported", "seed": None, "mesh_nodes": None, "base": "source pipeline",
+        "n_cases_per_shape": int(len(grid)), "case_params": grid.tolist(),
+        "acceptance": {"roundtrip_tol_mm": 1e-3, "min_jacobian_gt": 0.0, "finite": True},
+        "source": SOURCE, "source_units": "cm (converted to mm)", "shape_source": "imported",
+        "epi_sign": "restored: file names give |θepi|, θepi = −value",
+    }
+    try:
+        store = PairStore.create(staging, attrs)
+        for shape_id, (shape, (tets, data)) in enumerate(sorted(shapes.items())):
+            first_ed = data[0][1]
+            try:
+                mesh = make_mesh(first_ed, tets)
+            except MeshError as exc:
+                for pair, _, _ in data:
+                    report.skip(f"shape mesh unusable: {exc}", pair.ed_path.name)
+                continue
+            store.write_shape(shape_id, mesh.nodes, mesh.tets, mesh.endo, mesh.epi, mesh.base,
+                              np.full(len(MODES), np.nan),
+                              {"source_shape": shape, "source_split": data[0][0].split, "n_source_pairs": len(data)})
+            present = set()
+            files = {}
+            for pair, ed, un in data:
+                k = index[tuple(pair.params)]
+                stats = {"roundtrip_error_mm": float(np.abs(un + (ed - un) - ed).max()),
+                         "min_jacobian": _min_jacobian(un, ed, mesh.tets), "final_residual": 0.0}
+                reason = store.write_pair(shape_id, k, un, ed, stats)
+                if reason is not None:
+                    report.skip(reason, pair.ed_path.name)
+                    continue
+                store.set_case(shape_id, k, DONE, stats_row(stats))
+                present.add(k)
+                files[str(k)] = [pair.ed_path.name, pair.unloaded_path.name]
+                report.imported += 1
+            for k in range(len(grid)):
+                if k not in present:
+                    store.set_case(shape_id, k, FAILED, stats_row({}), reason=ABSENT)
+            store.update_shape_attrs(shape_id, source_shape=shape, source_split=data[0][0].split, source_files=files)
+            store.flush()
+            report.shapes += 1
+        if report.imported == 0:
+            raise StoreError(f"no pair could be imported from {root} ({report.n_skipped} files skipped)")
+        if staging != final:
+            os.replace(staging, final)
+    except BaseException:
+        if staging != final and Path(staging).exists():
+            shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return report
+
+
+def _min_jacobian(unloaded: np.ndarray, ed: np.ndarray, tets: np.ndarray) -> float:
+    """min det F of the piecewise-linear map unloaded → ED."""
+    def edges(x):
+        e = x[tets]
+        return np.stack([e[:, 1] - e[:, 0], e[:, 2] - e[:, 0], e[:, 3] - e[:, 0]], axis=2)
+
+    F = edges(ed) @ np.linalg.inv(edges(unloaded))
+    return float(np.linalg.det(F).min())
