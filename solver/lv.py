@@ -149,9 +149,11 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
                     z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=looseness)
                 stats.add(st)
                 break
-            except (SolveError, MeshError):
+            except (SolveError, MeshError) as exc:
                 accel.reset()
                 if not accelerated:
+                    if isinstance(exc, MeshError):
+                        raise SolveError(f"inverse update {update + 1} produced an invalid reference ({exc})") from None
                     raise
     stats.wall_s = time.perf_counter() - t_start
     raise SolveError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
