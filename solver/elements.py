@@ -126,6 +126,12 @@ def tet_geometry(nodes: np.ndarray, tets: np.ndarray):
     return det / 6.0, g
 
 
+def quadrature_barycentric(quad_degree: int) -> np.ndarray:
+    """Barycentric coordinates [4, nq] of the tet rule of the given exact degree."""
+    X, _ = get_quadrature(RefTet, quad_degree)
+    return np.vstack([1 - X.sum(axis=0), X])
+
+
 def cell_quadrature(nodes: np.ndarray, tets: np.ndarray, order: int, quad_degree: int) -> CellQuadrature:
     X, W = get_quadrature(RefTet, quad_degree)
     lam = np.vstack([1 - X.sum(axis=0), X])

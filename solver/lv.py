@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .assembly import MechanicsProblem, Supports
-from .elements import cell_quadrature
+from .elements import quadrature_barycentric
 from .fibres import fibre_frames, transmural_coordinate
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
@@ -35,8 +35,8 @@ def _supports(mesh: TetMesh, base: str) -> Supports:
 
 
 def _frames(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity, phi=None) -> np.ndarray:
-    cq_lam = cell_quadrature(mesh.nodes, mesh.tets, fidelity.displacement_order, fidelity.quad_degree).lam
-    return fibre_frames(mesh, params.helix_endo_deg, params.helix_epi_deg, cq_lam, phi)
+    lam = quadrature_barycentric(fidelity.quad_degree)
+    return fibre_frames(mesh, params.helix_endo_deg, params.helix_epi_deg, lam, phi)
 
 
 def lv_problem(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str, base: str = "sliding",
