@@ -30,10 +30,13 @@ class FidelityName(str, Enum):
 class Base(str, Enum):
     sliding = "sliding"
     clamped = "clamped"
+    spring = "spring"
 
 
 class UnloadMethod(str, Enum):
     fe = "fe"
+    gnn = "gnn"
+    hybrid = "hybrid"
 
 
 class Problem(str, Enum):
@@ -73,7 +76,7 @@ StiffnessOpt = typer.Option(..., "--stiffness", help="Guccione stiffness C, Pa (
 EndoOpt = typer.Option(60.0, "--endo", help="Endocardial helix angle, degrees (|θ| ≤ 90).")
 EpiOpt = typer.Option(-60.0, "--epi", help="Epicardial helix angle, degrees (the paper's −60…−70).")
 FidelityOpt = typer.Option(FidelityName.accurate, "--fidelity", help="Solver preset.")
-BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed) or clamped.")
+BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed), clamped, or spring (sliding + epicardial normal spring, as the original paper's pipeline).")
 UnitsOpt = typer.Option(Units.mm, "--units", help="Length unit of the input mesh; the output uses it too.")
 
 
@@ -141,9 +144,11 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
 def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diastolic mesh."),
            pressure: float = PressureOpt, stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
            out: Path = typer.Option(..., "-o", "--out", help="Output: unloaded mesh with `displacement` (ED − unloaded)."),
-           method: UnloadMethod = typer.Option(UnloadMethod.fe, "--method", help="fe: inverse finite elements."),
+           method: UnloadMethod = typer.Option(UnloadMethod.fe, "--method", help="fe: inverse finite elements; "
+                                               "gnn: the trained network; hybrid: network guess refined by inverse FE."),
            fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
-           tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4).")):
+           tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4)."),
+           run: Path = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid).")):
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
     from solver.forward import SolveError
     from solver.lv import inverse_solve
@@ -154,9 +159,13 @@ def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diast
         _check_output(out)
         if tol_mm is not None and not tol_mm > 0:
             raise ValueError(f"--tol-mm must be > 0, got {tol_mm}")
+        if (run is None) != (method is UnloadMethod.fe):
+            raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
         lv = read_mesh(mesh_path, units.value)
     except _input_errors() as exc:
         fail(str(exc))
+    if method is not UnloadMethod.fe:
+        return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm, units.value)
     try:
         result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm)
     except SolveError as exc:
@@ -246,6 +255,328 @@ def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fi
     worst = max((r["roundtrip_mm"] for r in ok), default=float("nan"))
     typer.echo(f"{fidelity.value}: {len(ok)}/{len(rows)} corners converged; worst round trip {worst:.1e} mm "
                f"(goal ≤ 1e-3 mm); {sum(r['wall_s'] for r in rows):.0f} s in all")
+
+
+# --- the original paper's dataset (issue 5) ---
+
+
+@app.command("import-l2u")
+def import_l2u_cmd(folder: Path = typer.Argument(..., metavar="DIR", help="Folder with the Loaded2UnNet dataset (searched at any depth)."),
+                   store: str = typer.Option(..., "--store", help="New Zarr store to write.")):
+    """Import the original paper's public FE pairs (VTU, cm) as done cases of a new store (mm)."""
+    from storage.l2u import import_l2u
+    from storage.store import StoreError
+
+    try:
+        report = import_l2u(folder, store)
+    except (StoreError, ValueError, FileNotFoundError) as exc:
+        fail(str(exc))
+    typer.echo(f"{store}: imported {report.imported} pairs of {report.shapes} shapes "
+               f"({report.found_files} files, {report.pairs} matched pairs, {report.n_skipped} skipped)")
+    for reason, names in sorted(report.skipped.items()):
+        typer.echo(f"  skipped {len(names)}: {reason} (e.g. {names[0]})")
+
+
+@bench_app.command("l2u")
+def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by import-l2u."),
+              fidelity: FidelityName = FidelityOpt,
+              base: Base = typer.Option(Base.spring, "--base", help="spring follows their pipeline (base z + epicardial spring)."),
+              limit: int = typer.Option(None, "--limit", help="Check only the first N pairs."),
+              stiffness_factor: float = typer.Option(1.0, "--stiffness-factor", help="Multiply their C (2: their law read as W = C (e^Q − 1))."),
+              as_json: bool = typer.Option(False, "--json")):
+    """Forward-solve their unloaded meshes with their parameters; mismatch to their ED meshes."""
+    from orchestrator.l2u_check import run_l2u_check
+    from storage.store import StoreError
+
+    try:
+        if not (stiffness_factor > 0):
+            raise ValueError(f"--stiffness-factor must be > 0, got {stiffness_factor}")
+        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor)
+    except (StoreError, ValueError) as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps({k: v for k, v in result.items() if k != "rows"}))
+        return
+    o = result["overall"]
+    typer.echo(f"{result['solved']}/{result['cases']} pairs solved ({fidelity.value}, base {base.value}, "
+               f"C × {stiffness_factor:g})")
+    for r in result["rows"]:
+        if r["ok"]:
+            typer.echo(f"  shape {r['shape']} case {r['case']}: P={r['pressure_mmhg']:g} C={r['stiffness_pa']:g} "
+                       f"θ={r['helix_endo_deg']:g}/{r['helix_epi_deg']:g}: mismatch mean {r['mismatch_mean_mm']:.3f} / "
+                       f"max {r['mismatch_max_mm']:.3f} mm; their loading {r['loading_mean_mm']:.2f} mm, ours "
+                       f"{r['ours_loading_mean_mm']:.2f} mm → {100 * r['relative']:.1f} %, {100 * r['aligned_relative']:.1f} % "
+                       f"after in-plane rigid alignment ({r['wall_s']:.1f} s)")
+        else:
+            typer.echo(f"  shape {r['shape']} case {r['case']}: FAILED {r['reason']}")
+    for name, groups in result["by_parameter"].items():
+        parts = ", ".join(f"{v:g}: {100 * g['relative']:.1f} % ({100 * g['aligned_relative']:.1f} % aligned)"
+                          for v, g in groups.items())
+        typer.echo(f"  by {name}: {parts}")
+    if o["n"]:
+        typer.echo(f"overall: mean mismatch {o['mismatch_mean_mm']:.3f} mm (max {o['mismatch_max_mm']:.3f} mm) = "
+                   f"{100 * o['relative']:.1f} % of the mean loading displacement {o['loading_mean_mm']:.2f} mm "
+                   f"(ours {o['ours_loading_mean_mm']:.2f} mm); after in-plane rigid alignment {o['aligned_mean_mm']:.3f} mm "
+                   f"= {100 * o['aligned_relative']:.1f} %; goal ≤ 10 %")
+
+
+# --- training and evaluation (issue 4) ---
+
+
+def _trainer_errors():
+    from storage.store import StoreError
+    from trainer.config import TrainerError
+
+    return (TrainerError, StoreError, ValueError, FileNotFoundError, NotADirectoryError)
+
+
+def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity: str, base: str, tol_mm, units: str):
+    """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
+    from solver.forward import SolveError
+    from storage.meshfiles import write_mesh
+    from trainer.predict import unload_with_network
+
+    try:
+        result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm)
+    except SolveError as exc:
+        fail(f"inverse solve did not converge: {exc}", code=1)
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    for w in result["warnings"]:
+        typer.echo(f"heartctl: warning: {w}", err=True)
+    unloaded = result["unloaded_nodes"]
+    shift = lv.nodes - unloaded
+    write_mesh(out, lv, unloaded, point_data={"displacement": shift}, units=units, length_fields=("displacement",))
+    d = np.linalg.norm(shift, axis=1)
+    if method == "gnn":
+        typer.echo(f"unloaded at {params.label()} by the network {result['run']} in {result['network_ms']:.1f} ms "
+                   f"(first call with graph building {result['first_call_ms']:.0f} ms); "
+                   f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
+        return
+    inv = result["inverse"]
+    typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms"
+               f"{', guess unusable' if result['fallback'] else ''}, then {fidelity} inverse FE): {inv.updates} updates, "
+               f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
+               f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; "
+               f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
+
+
+def _train_config_help() -> str:
+    from trainer.config import CONFIG_HELP
+
+    return CONFIG_HELP
+
+
+@app.command()
+def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs (heartctl generate)."),
+          run_dir: Path = typer.Option(..., "--run-dir", help="Run directory: checkpoint.pt, metrics.csv, Ray storage; "
+                                                               "reusing it resumes the run."),
+          gpus: int = typer.Option(0, "--gpus", help="GPU workers (DDP over NCCL); 0 = CPU workers with gloo."),
+          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | pca."),
+          epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
+          batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
+          sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),
+          split: str = typer.Option("shape", "--split", help="shape (70/30 of shapes) | lovo:P=10 (C=, endo=, epi=) | source."),
+          seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset, initialisation and shuffling."),
+          local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
+          no_ray: bool = typer.Option(False, "--no-ray", help="Run the plain PyTorch loop in this process (no Ray)."),
+          device: str = typer.Option(None, "--device", help="With --no-ray: cpu | cuda (default cuda when available)."),
+          workers: int = typer.Option(2, "--workers", help="CPU workers when --gpus 0."),
+          address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT (default: a local Ray)."),
+          max_failures: int = typer.Option(2, "--max-failures", help="Restarts from the last checkpoint after a worker dies."),
+          lr: float = typer.Option(1e-3, "--lr", help="AdamW learning rate."),
+          patience: int = typer.Option(50, "--patience", help="Early stopping: epochs without a better validation loss."),
+          bf16: bool = typer.Option(False, "--bf16", help="bf16 autocast (GPU only)."),
+          as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON.")):
+    """Train HeartUnloadNet (or an ablation / baseline) on a store; Ray Train DDP, or --no-ray."""
+    from storage.store import StoreError, inspect_store
+    from trainer.checkpoint import load_checkpoint, run_checkpoint_path
+    from trainer.config import TrainConfig, TrainerError, named_config
+    from trainer.splits import parse_split
+
+    try:
+        model = named_config(config)
+        if local and (gpus or address):
+            raise TrainerError("--local runs two CPU workers on a local Ray; it takes no --gpus or --address")
+        if no_ray and (local or address or gpus):
+            raise TrainerError("--no-ray trains in this process; drop --local, --address and --gpus (use --device)")
+        if gpus < 0 or workers < 1 or max_failures < 0 or patience < 1 or not lr > 0:
+            raise TrainerError("--gpus ≥ 0, --workers ≥ 1, --max-failures ≥ 0, --patience ≥ 1 and --lr > 0 are required")
+        if device not in (None, "cpu", "cuda"):
+            raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+        parse_split(split)
+        cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed,
+                          epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size, lr=lr, patience=patience,
+                          bf16=bf16)
+        if inspect_store(store) is None:
+            raise StoreError(f"no heartctl store at {store}")
+        if not run_dir.parent.exists():
+            raise TrainerError(f"folder {run_dir.parent} does not exist")
+        if run_dir.exists() and not run_dir.is_dir():
+            raise TrainerError(f"--run-dir {run_dir} is a file")
+        ckpt = run_checkpoint_path(run_dir)
+        if ckpt.is_file():
+            saved = TrainConfig.from_dict(load_checkpoint(ckpt)["train_config"])
+            if saved.identity() != cfg.identity():
+                raise TrainerError(f"run directory {run_dir} holds a run with another configuration "
+                                   f"({saved.config_name}, split {saved.split}, SR {saved.sr:g}, seed {saved.seed}); "
+                                   f"use a new --run-dir")
+        import torch
+
+        if gpus and not address and torch.cuda.device_count() < gpus:
+            raise TrainerError(f"--gpus {gpus}: this machine has {torch.cuda.device_count()} CUDA device(s); "
+                               f"use --gpus 0 for CPU workers")
+        if device == "cuda" and not torch.cuda.is_available():
+            raise TrainerError("--device cuda: no CUDA device is available here")
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    from trainer.loop import Dist, fit
+
+    if no_ray or model.kind == "pca":
+        import torch
+
+        dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        try:
+            summary = fit(cfg, run_dir, Dist(device=dev))
+        except _trainer_errors() as exc:
+            fail(str(exc))
+        except KeyboardInterrupt:
+            fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
+        summary["mode"] = "in-process" if model.kind != "pca" else "in-process (PCA fit, no Ray needed)"
+    else:
+        import ray
+
+        from trainer.ray_train import train_with_ray
+
+        try:
+            if address:
+                ray.init(address=address)
+            elif not ray.is_initialized():
+                ray.init(num_cpus=workers if local else None, include_dashboard=False)
+            if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
+                raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
+        except (ConnectionError, RuntimeError, TrainerError) as exc:
+            ray.shutdown()
+            fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0]}")
+        try:
+            summary = train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=max_failures)
+        except _trainer_errors() as exc:
+            ray.shutdown()
+            fail(str(exc))
+        except KeyboardInterrupt:
+            ray.shutdown()
+            fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
+        except Exception as exc:  # Ray wraps worker errors (TrainingFailedError …)
+            ray.shutdown()
+            text = str(exc).strip()
+            line = next((ln for ln in reversed(text.splitlines()) if "TrainerError" in ln), None)
+            if line:
+                fail(line.split("TrainerError:", 1)[-1].strip())
+            fail(f"training failed: {text.splitlines()[0] if text else type(exc).__name__}", code=1)
+        ray.shutdown()
+        summary["mode"] = f"Ray Train, {summary['workers']} {'GPU' if gpus else 'CPU'} worker(s), {summary['backend']}"
+    if as_json:
+        typer.echo(json.dumps(summary, default=str))
+        return
+    best = summary.get("best_val_md_mm")
+    typer.echo(f"{config}: {summary['epoch']} epochs ({summary['mode']}); best validation "
+               + (f"MD {best:.3f} mm at epoch {summary['best_epoch']}" if best is not None else "—")
+               + (", stopped early" if summary.get("stopped_early") else "")
+               + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir}/checkpoint.pt")
+
+
+@app.command()
+def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartctl train --run-dir)."),
+             store: str = typer.Option(..., "--store", help="The store the run was trained on."),
+             split: str = typer.Option("test", "--split", help="test | val | train (the run's split) | all (every done case)."),
+             device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
+             out: Path = typer.Option(None, "--out", help="Output folder (default RUN/eval_SPLIT)."),
+             plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots (needs matplotlib)."),
+             as_json: bool = typer.Option(False, "--json", help='One JSON object: {"dsc_1mm": …, "hd_mm": …, "cases": N}.')):
+    """Metrics of a trained run on its store: DSC@1 mm / 0.1 mm, HD, MD, SD (mm, mean ± SD), time per case."""
+    from trainer.evaluate import evaluate_run
+
+    try:
+        if device not in ("cpu", "cuda"):
+            raise ValueError(f"--device must be cpu or cuda, got {device!r}")
+        if device == "cuda":
+            import torch
+
+            if not torch.cuda.is_available():
+                raise ValueError("--device cuda: no CUDA device is available here")
+        report = evaluate_run(run, store, split, device, out, plots)
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps({**report["summary"], "nn_md_mm": report["nn_md_mm"],
+                               "ms_per_case_batched": report["ms_per_case_batched"], "split": split,
+                               "config": report["config"]}))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    agg = report["aggregate"]
+    table = Table(title=f"{report['config']} on {report['summary']['cases']} {split} cases of {store}")
+    table.add_column("metric")
+    table.add_column("mean ± SD over cases", justify="right")
+    table.add_column("cm", justify="right")
+    for key, name, cm in (("dsc_1mm", "DSC @ 1 mm", False), ("dsc_01mm", "DSC @ 0.1 mm", False),
+                          ("hd_mm", "HD (mm)", True), ("md_mm", "MD (mm)", True), ("sd_mm", "SD (mm)", True),
+                          ("nn_md_mm", "MD, nearest node (mm)", True), ("max_mm", "max node error (mm)", True)):
+        m, s = agg[key]
+        table.add_row(name, f"{m:.4f} ± {s:.4f}", f"{m / 10:.4f}" if cm else "")
+    con = Console(width=160)
+    con.print(table)
+    con.print(f"inference: {report['summary']['ms_per_case']:.2f} ms per case at batch 1, "
+              f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})")
+    worst = max(report["by_parameter"], key=lambda r: r["md_mm_mean"])
+    con.print(f"per parameter value: worst MD {worst['md_mm_mean']:.3f} mm at {worst['parameter']} = {worst['value']:g} "
+              f"({worst['cases']} cases); see by_parameter.csv")
+    con.print(f"wrote {', '.join(report['files'])} to {report['out_dir']}")
+
+
+@bench_app.command("model")
+def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
+                    nodes: int = typer.Option(650, "--nodes", help="Target mesh node count."),
+                    config: str = typer.Option("paper", "--config", help="Model configuration (a gnn one)."),
+                    batches: str = typer.Option("1,32,128", "--batches", help="Inference batch sizes."),
+                    train_batch: int = typer.Option(None, "--train-batch", help="Training batch (default 32 CPU, 128 GPU)."),
+                    bf16: bool = typer.Option(False, "--bf16", help="bf16 autocast (GPU only)."),
+                    threads: int = typer.Option(None, "--threads", help="torch CPU threads (default: torch's)."),
+                    as_json: bool = typer.Option(False, "--json")):
+    """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
+    from trainer.bench import bench_model
+
+    try:
+        sizes = [int(b) for b in batches.replace(",", " ").split()]
+    except ValueError:
+        fail(f"--batches must be comma-separated integers, got {batches!r}")
+    try:
+        if not sizes or min(sizes) < 1 or nodes < 50 or (train_batch is not None and train_batch < 1):
+            raise ValueError("--batches need sizes ≥ 1, --nodes ≥ 50, --train-batch ≥ 1")
+        if device not in ("cpu", "cuda"):
+            raise ValueError(f"--device must be cpu or cuda, got {device!r}")
+        if threads is not None:
+            import torch
+
+            if threads < 1:
+                raise ValueError("--threads must be ≥ 1")
+            torch.set_num_threads(threads)
+        r = bench_model(device, nodes, config, sizes, train_batch, bf16)
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(r))
+        return
+    typer.echo(f"{r['config']} model, {r['parameters']:,} parameters; mesh {r['nodes']} nodes, {r['edges']} directed edges; "
+               f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, eager PyTorch")
+    for row in r["inference"]:
+        typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} ms per batch)")
+    typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "
+               f"{r['train_graphs_per_s']:.1f} graphs/s")
+
+
+# --- end of training and evaluation (issue 4) ---
 
 
 # --- data generation (issue 3) ---

@@ -14,12 +14,17 @@ from solver.parameters import CaseParameters
 from storage.store import PARAM_NAMES, PairReader
 
 
-def check_case(reader: PairReader, shape_id: int, k: int, fidelity: str, base: str) -> dict:
+def check_case(reader: PairReader, shape_id: int, k: int, fidelity: str, base: str,
+               stiffness_factor: float = 1.0) -> dict:
+    """One pair; `stiffness_factor` multiplies their C (2 tests the reading W = C (e^Q − 1) of
+    their law against our W = C/2 (e^Q − 1))."""
     case = reader.case(shape_id, k)
     mesh = reader.mesh(shape_id)
     unloaded = case.unloaded.astype(float)
     ed = case.loaded.astype(float)
-    params = CaseParameters(*(case.params[n] for n in PARAM_NAMES))
+    p = case.params
+    params = CaseParameters(p["pressure_mmhg"], p["stiffness_pa"] * stiffness_factor, p["helix_endo_deg"],
+                            p["helix_epi_deg"])
     row = {"shape": shape_id, "case": k, **case.params}
     loading = np.linalg.norm(ed - unloaded, axis=1)
     row["loading_mean_mm"] = float(loading.mean())
@@ -51,10 +56,11 @@ def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
     return out
 
 
-def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None) -> dict:
+def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None,
+                  stiffness_factor: float = 1.0) -> dict:
     reader = PairReader(location)
     keys = reader.done_cases()[:limit] if limit else reader.done_cases()
-    rows = [check_case(reader, s, k, fidelity, base) for s, k in keys]
+    rows = [check_case(reader, s, k, fidelity, base, stiffness_factor) for s, k in keys]
     ok = [r for r in rows if r["ok"]]
     by_param = {}
     for name in PARAM_NAMES:
@@ -62,7 +68,7 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
         for r in ok:
             groups[r[name]].append(r)
         by_param[name] = {v: _summary(g) for v, g in sorted(groups.items())}
-    return {"fidelity": fidelity, "base": base, "cases": len(rows), "solved": len(ok),
+    return {"fidelity": fidelity, "base": base, "stiffness_factor": stiffness_factor, "cases": len(rows), "solved": len(ok),
             "failed": [r for r in rows if not r["ok"]], "overall": _summary(ok), "by_parameter": by_param,
             "rows": rows}
 

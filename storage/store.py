@@ -301,8 +301,9 @@ class PairStore:
         self._handles.pop(shape_id, None)
 
     def update_shape_attrs(self, shape_id: int, **values) -> None:
-        """Extra per-shape attributes (e.g. provenance of imported data)."""
-        self._shapes()[str(shape_id)].attrs.update(_jsonable(values))
+        """Extra per-shape attributes (e.g. provenance of imported data). Written through the cached
+        group handle, whose attribute dict later flushes rewrite whole."""
+        self._handle(shape_id)["group"].attrs.update(_jsonable(values))
 
     def _handle(self, shape_id: int) -> dict:
         if shape_id not in self._handles:

@@ -1,0 +1,100 @@
+"""Import of the original paper's dataset (fixtures: 4 pairs of shape 59, cm) and the forward
+consistency check of our solver against it."""
+import shutil
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli import app
+from orchestrator.l2u_check import check_case
+from storage.store import PairReader
+
+FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "l2u"
+if not FIXTURES.is_dir():  # CI clones the repo beside a copy of shared/
+    FIXTURES = Path(__file__).resolve().parents[1].parent / "shared" / "fixtures" / "l2u"
+pytestmark = pytest.mark.skipif(not FIXTURES.is_dir(), reason="shared/fixtures/l2u not present")
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    """The fixtures laid out as the upstream dataset: dataset/test/{ED,unloaded}/…vtu."""
+    root = tmp_path_factory.mktemp("l2u") / "dataset"
+    for kind in ("ED", "unloaded"):
+        folder = root / "test" / kind
+        folder.mkdir(parents=True)
+        for f in FIXTURES.glob(f"{kind}*.vtu"):
+            shutil.copy(f, folder / f.name)
+    return root
+
+
+@pytest.fixture(scope="module")
+def store(source, tmp_path_factory):
+    path = tmp_path_factory.mktemp("store") / "l2u.zarr"
+    r = runner.invoke(app, ["import-l2u", str(source), "--store", str(path)])
+    assert r.exit_code == 0, r.output
+    assert "imported 4 pairs of 1 shapes" in r.output
+    return path
+
+
+def test_import_converts_cm_to_mm_and_restores_epi_sign(store):
+    reader = PairReader(str(store))
+    assert reader.attrs["fidelity"] == "imported"
+    g = reader._shape(0)
+    assert g.attrs["source_shape"] == 59 and g.attrs["source_split"] == "test"
+    cases = {tuple(c.params.values()): c for c in reader.iter_done()}
+    assert set(cases) == {(10.0, 150.0, 60.0, -60.0), (10.0, 300.0, 70.0, -60.0),
+                          (10.0, 50.0, 70.0, -70.0), (6.0, 300.0, 60.0, -60.0)}
+    case = cases[(10.0, 150.0, 60.0, -60.0)]
+    ed = meshio.read(FIXTURES / "ED59_10_150_60_60.vtu").points * 10.0
+    un = meshio.read(FIXTURES / "unloaded59_10_150_60_60.vtu").points * 10.0
+    np.testing.assert_allclose(case.loaded, ed, atol=1e-4)  # float32 in the store
+    np.testing.assert_allclose(case.unloaded, un, atol=1e-4)
+    files = g.attrs["source_files"][str(case.index)]
+    assert files == ["ED59_10_150_60_60.vtu", "unloaded59_10_150_60_60.vtu"]
+    assert 0.5 < case.stats["min_jacobian"] < 1.0
+    # grid positions the dataset lacks are failed with a reason, never data
+    status = reader.status(0)
+    assert (status == 1).sum() == 4 and (status == 2).sum() == len(status) - 4
+
+
+def test_malformed_and_unmatched_files_are_listed_and_skipped(source, tmp_path):
+    root = tmp_path / "mixed"
+    shutil.copytree(source, root)
+    (root / "test" / "ED" / "ED59_garbage.vtu").write_text("x")
+    shutil.copy(FIXTURES / "ED59_10_150_60_60.vtu", root / "test" / "ED" / "ED59_12_150_60_60.vtu")
+    out = tmp_path / "s.zarr"
+    r = runner.invoke(app, ["import-l2u", str(root), "--store", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "imported 4 pairs" in r.output and "2 skipped" in r.output
+    assert "malformed name" in r.output and "unmatched" in r.output
+
+
+def test_nothing_importable_exits_2_and_leaves_nothing(tmp_path):
+    empty = tmp_path / "empty"
+    (empty / "ED").mkdir(parents=True)
+    shutil.copy(FIXTURES / "ED59_10_150_60_60.vtu", empty / "ED")
+    out = tmp_path / "none.zarr"
+    r = runner.invoke(app, ["import-l2u", str(empty), "--store", str(out)])
+    assert r.exit_code == 2 and "no pair could be imported" in r.output
+    assert not out.exists() and not list(tmp_path.glob("*.importing"))
+
+
+def test_existing_store_is_refused(store, source):
+    r = runner.invoke(app, ["import-l2u", str(source), "--store", str(store)])
+    assert r.exit_code == 2 and "already exists" in r.output
+
+
+def test_forward_consistency_on_one_pair(store):
+    """Our forward solve of their unloaded mesh (fast, their base condition) against their ED.
+    Documented tolerance: mean mismatch < 50 % of their mean loading displacement. Measured 35 %
+    (the goal of 10 % is not met yet: our LV is ~25 % more compliant, see README)."""
+    reader = PairReader(str(store))
+    s, k = reader.done_cases()[0]
+    row = check_case(reader, s, k, "fast", "spring")
+    assert row["ok"]
+    assert row["relative"] < 0.5
+    assert 0.5 < row["ours_loading_mean_mm"] / row["loading_mean_mm"] < 2.0

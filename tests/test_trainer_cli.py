@@ -1,0 +1,139 @@
+"""heartctl train / evaluate / unload --method gnn|hybrid / bench model through the CLI, and every
+bad input (bad checkpoint, mismatched store, bad split or config) → one line, exit code 2."""
+from __future__ import annotations
+
+import json
+
+import meshio
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from cli import app
+from storage.meshfiles import write_mesh
+from trainer_fixtures import lv_mesh, make_tiny_store
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def assert_bad_input(result, *words):
+    assert result.exit_code == 2, result.output
+    lines = [ln for ln in result.output.strip().splitlines() if ln.startswith("heartctl: error:")]
+    assert len(lines) == 1, result.output
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    root = tmp_path_factory.mktemp("trainer_cli")
+    store = make_tiny_store(root / "tiny.zarr", shapes=4)
+    run_dir = root / "run"
+    r = run("train", "--store", store, "--run-dir", run_dir, "--no-ray", "--epochs", 1, "--batch-size", 8,
+            "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    return {"root": root, "store": store, "run": run_dir}
+
+
+def test_train_evaluate_json(trained):
+    assert (trained["run"] / "checkpoint.pt").is_file() and (trained["run"] / "metrics.csv").is_file()
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--json", "--no-plots")
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    for key in ("dsc_1mm", "dsc_01mm", "hd_mm", "md_mm", "sd_mm", "ms_per_case", "cases"):
+        assert key in out
+    assert out["cases"] > 0 and 0 <= out["dsc_1mm"] <= 1 and out["hd_mm"] >= out["md_mm"] > 0
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--split", "all", "--no-plots")
+    assert r.exit_code == 0, r.output
+    assert "DSC @ 1 mm" in r.output
+
+
+def test_unload_gnn_and_hybrid(trained, tmp_path):
+    ed = tmp_path / "ed.vtu"
+    m = lv_mesh(0)
+    write_mesh(ed, m, units="cm")
+    out = tmp_path / "unloaded.vtu"
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method", "gnn",
+            "--run", trained["run"], "--units", "cm", "-o", out)
+    assert r.exit_code == 0, r.output
+    u = meshio.read(out)
+    assert u.points.shape == (m.n_nodes, 3)
+    np.testing.assert_allclose(u.points + u.point_data["displacement"], m.nodes / 10.0, atol=1e-9)  # cm
+    assert np.abs(u.point_data["displacement"]).max() > 0
+    out2 = tmp_path / "hybrid.vtu"
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method", "hybrid",
+            "--fidelity", "fast", "--run", trained["run"], "--units", "cm", "-o", out2)
+    assert r.exit_code in (0, 1), r.output  # 1 only if the inverse solve itself fails
+    if r.exit_code == 0:
+        assert "hybrid" in r.output and out2.is_file()
+
+
+def test_bad_checkpoint_and_run_dirs(trained, tmp_path):
+    bad = tmp_path / "bad_run"
+    bad.mkdir()
+    (bad / "checkpoint.pt").write_bytes(b"\x00garbage")
+    assert_bad_input(run("evaluate", "--run", bad, "--store", trained["store"]), "cannot read checkpoint")
+    assert_bad_input(run("evaluate", "--run", tmp_path / "nope", "--store", trained["store"]), "does not exist")
+    empty = tmp_path / "empty_run"
+    empty.mkdir()
+    assert_bad_input(run("evaluate", "--run", empty, "--store", trained["store"]), "no checkpoint.pt")
+    ed = tmp_path / "ed.vtu"
+    write_mesh(ed, lv_mesh(0))
+    o = tmp_path / "o.vtu"
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", bad, "-o", o),
+                     "cannot read checkpoint")
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "-o", o), "--run")
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--run", trained["run"], "-o", o), "--run")
+    assert not o.exists()
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", bad, "--no-ray"), "cannot read checkpoint")
+
+
+def test_mismatched_store(trained):
+    other = make_tiny_store(trained["root"] / "other_seed.zarr", shapes=4, seed=1)
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", other), "does not match", "seed")
+    grid = make_tiny_store(trained["root"] / "other_grid.zarr", shapes=4, pressures=(6.0, 10.0))
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", grid), "does not match", "grid")
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["root"] / "none.zarr"), "no heartctl store")
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--split", "holdout"), "--split")
+
+
+@pytest.mark.parametrize("args,words", [
+    (("--no-ray", "--split", "lovo:Q=1"), ("axis",)),
+    (("--no-ray", "--split", "lovo:P=10"), ("no done case", "8, 12")),
+    (("--no-ray", "--config", "A7"), ("--config",)),
+    (("--no-ray", "--sr", "0"), ("--sr",)),
+    (("--no-ray", "--epochs", "0"), ("--epochs",)),
+    (("--gpus", "1"), ("--gpus",)),
+    (("--local", "--no-ray"), ("--no-ray",)),
+])
+def test_train_bad_inputs(trained, tmp_path, args, words):
+    import torch
+
+    if "--gpus" in args and torch.cuda.is_available():
+        pytest.skip("this host has a GPU")
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "r", *args), *words)
+    assert not (tmp_path / "r").exists()
+
+
+def test_train_refuses_a_run_dir_of_another_config(trained):
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", trained["run"], "--no-ray", "--config", "A1"),
+                     "another configuration")
+    assert_bad_input(run("train", "--store", trained["root"] / "missing.zarr", "--run-dir", trained["root"] / "x",
+                         "--no-ray"), "no heartctl store")
+
+
+def test_bench_model_small():
+    r = run("bench", "model", "--nodes", 120, "--batches", "1,2", "--train-batch", 2, "--json")
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    assert [row["batch"] for row in out["inference"]] == [1, 2]
+    assert out["train_graphs_per_s"] > 0 and out["parameters"] > 1e6
+    assert_bad_input(run("bench", "model", "--batches", "1,x"), "--batches")
+    import torch
+
+    if not torch.cuda.is_available():
+        assert_bad_input(run("bench", "model", "--device", "cuda"), "CUDA")

@@ -1,0 +1,111 @@
+"""Graphs from a store, splits (shape, LOVO, source), the supervision ratio, and normalisation
+fitted on the training split only."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from trainer.config import TrainerError
+from trainer.data import Normalisation, build_training_data, read_store
+from trainer.splits import make_split, parse_split, supervised_subset
+from trainer_fixtures import make_tiny_store
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return make_tiny_store(tmp_path_factory.mktemp("trainer_data") / "tiny.zarr", shapes=5)
+
+
+def test_shape_split_keeps_shapes_apart_and_is_seeded(store):
+    cases = read_store(store)
+    a = make_split(cases.keys, cases.params, "shape", seed=0)
+    shapes = {name: {k[0] for k in keys} for name, keys in a.items()}
+    assert shapes["train"] and shapes["test"]
+    assert not (shapes["test"] & (shapes["train"] | shapes["val"]))  # no test shape is seen in training
+    assert sorted(a["train"] + a["val"] + a["test"]) == cases.keys
+    assert len(shapes["test"]) == 2  # round(0.3 × 5)
+    assert make_split(cases.keys, cases.params, "shape", seed=0) == a
+    assert any(make_split(cases.keys, cases.params, "shape", seed=s)["test"] != a["test"] for s in range(1, 6))
+
+
+def test_lovo_split_holds_out_one_value(store):
+    cases = read_store(store)
+    parts = make_split(cases.keys, cases.params, "lovo:P=12", seed=0)
+    assert parts["test"] and all(cases.params[k][0] == 12.0 for k in parts["test"])
+    assert all(cases.params[k][0] != 12.0 for k in parts["train"] + parts["val"])
+    parts = make_split(cases.keys, cases.params, "lovo:C=200", seed=0)
+    assert all(cases.params[k][1] == 200.0 for k in parts["test"])
+    with pytest.raises(TrainerError, match="8, 12"):
+        make_split(cases.keys, cases.params, "lovo:P=10", seed=0)
+
+
+@pytest.mark.parametrize("spec", ["shapes", "lovo:", "lovo:Q=3", "lovo:P=abc", "lovo:P=nan", "kfold"])
+def test_bad_split_specs(spec):
+    with pytest.raises(TrainerError):
+        parse_split(spec)
+
+
+def test_source_split_from_store_attrs(store):
+    cases = read_store(store)
+    attrs = {"splits": {"train": [0, 1, 2], "val": [3], "test": [4]}}
+    parts = make_split(cases.keys, cases.params, "source", seed=0, store_attrs=attrs)
+    assert {k[0] for k in parts["test"]} == {4} and {k[0] for k in parts["val"]} == {3}
+    per_shape = {"shape_source_split": {0: "train", 1: "train", 2: "validation", 3: "test", 4: "test"}}
+    parts = make_split(cases.keys, cases.params, "source", seed=0, store_attrs=per_shape)
+    assert {k[0] for k in parts["test"]} == {3, 4} and {k[0] for k in parts["val"]} == {2}
+    with pytest.raises(TrainerError, match="source"):
+        make_split(cases.keys, cases.params, "source", seed=0, store_attrs={})
+
+
+def test_graphs_hold_normalised_coordinates_targets_and_params(store):
+    b = build_training_data(store, "shape", seed=0)
+    cases = b.cases
+    g = b.test[0]
+    key = tuple(g.key[0].tolist())
+    feat = cases.features[key[0]]
+    np.testing.assert_allclose(g.x.numpy(), b.norm.coords(feat.ed_mm), atol=1e-5)
+    np.testing.assert_allclose(g.y.numpy() * b.norm.disp_scale_mm, cases.unloaded[key] - feat.ed_mm, atol=1e-5)
+    assert g.params.shape == (1, 4)
+    p = g.params[0].numpy()
+    assert p[0] in (0.0, 1.0) and p[1] in (0.0, 1.0) and p[2] == 0.0 and p[3] == 0.0  # grid bounds → [0, 1]
+    assert g.edge_index.shape[0] == 2 and int(g.edge_index.max()) < g.num_nodes
+    assert set(g.region.unique().tolist()) <= set(range(6)) and len(g.region.unique()) >= 4
+
+
+def test_normalisation_uses_the_training_split_only(store):
+    b = build_training_data(store, "shape", seed=0)
+    c = b.cases
+    train_ed = [c.features[k[0]].ed_mm for k in b.split["train"]]
+    every_ed = [c.features[k[0]].ed_mm for k in c.keys]
+    train_disp = [c.unloaded[k] - c.features[k[0]].ed_mm for k in b.split["train"]]
+    expected = Normalisation.fit(train_ed, train_disp, c.attrs["grid"])
+    np.testing.assert_allclose(b.norm.centre_mm, expected.centre_mm, rtol=0, atol=1e-12)
+    assert b.norm.scale_mm == pytest.approx(expected.scale_mm, rel=1e-12)
+    assert b.norm.disp_scale_mm == pytest.approx(expected.disp_scale_mm, rel=1e-12)
+    including_test = Normalisation.fit(every_ed, train_disp, c.attrs["grid"])
+    assert np.abs(np.subtract(including_test.centre_mm, b.norm.centre_mm)).max() > 1e-3  # it would differ
+
+
+def test_supervision_ratio_really_removes_labels(store):
+    full = build_training_data(store, "shape", seed=0, sr=1.0)
+    b = build_training_data(store, "shape", seed=0, sr=0.25)
+    n = len(b.split["train"])
+    assert len(b.labelled) == max(1, round(0.25 * n)) < n
+    assert b.labelled == supervised_subset(b.split["train"], 0.25, 0)
+    for g in b.train:
+        key = tuple(g.key[0].tolist())
+        if key in b.labelled:
+            assert bool(g.labelled) and torch.isfinite(g.y).all()
+        else:
+            assert not bool(g.labelled) and torch.isnan(g.y).all()  # the label is gone, not just flagged
+    assert all(bool(g.labelled) and torch.isfinite(g.y).all() for g in b.val + b.test)
+    # the displacement scale comes from the labelled cases only
+    c = b.cases
+    d = np.concatenate([c.unloaded[k] - c.features[k[0]].ed_mm for k in sorted(b.labelled)])
+    assert b.norm.disp_scale_mm == pytest.approx(float(np.sqrt((d ** 2).mean())), rel=1e-12)
+    assert b.norm.disp_scale_mm != pytest.approx(full.norm.disp_scale_mm, rel=1e-9)
+    with pytest.raises(TrainerError):
+        from trainer.config import TrainConfig
+
+        TrainConfig(store=store, sr=0.0)

@@ -1,0 +1,172 @@
+"""HeartUnloadNet: output shapes for every configuration, permutation equivariance, mesh-size
+agnostic batching, the single-token attention identity, and the cycle term on unlabelled cases."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from torch_geometric.data import Batch
+
+from trainer.config import NAMED_CONFIGS, ModelConfig, TrainerError, named_config
+from trainer.data import Normalisation, case_graph, mesh_edges, mesh_features
+from trainer.model import CrossAttention, build_model, count_parameters, loss_terms
+from trainer_fixtures import lv_mesh, synthetic_unloaded
+
+GNN_CONFIGS = [name for name, c in NAMED_CONFIGS.items() if c.kind == "gnn"]
+
+
+def small(cfg: ModelConfig) -> ModelConfig:
+    return replace(cfg, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
+
+
+@pytest.fixture(scope="module")
+def graphs():
+    """Two real meshes with different node counts, as labelled graphs."""
+    out = []
+    for s in (0, 1):
+        m = lv_mesh(s)
+        f = mesh_features(m)
+        norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
+        out.append(case_graph(f, [8.0, 150.0, 65.0, -65.0], norm, synthetic_unloaded(m.nodes, 8.0, 150.0)))
+    assert out[0].num_nodes != out[1].num_nodes
+    return out
+
+
+def test_mesh_edges_both_directions_no_duplicates():
+    ei = mesh_edges(np.array([[0, 1, 2, 3], [1, 2, 3, 4]]))
+    pairs = set(map(tuple, ei.T.tolist()))
+    assert len(pairs) == ei.shape[1] == 2 * 9  # 6 + 6 − 3 shared edges, both ways
+    assert all((b, a) in pairs for a, b in pairs)
+
+
+@pytest.mark.parametrize("name", GNN_CONFIGS)
+def test_output_shapes_every_config(name, graphs):
+    torch.manual_seed(0)
+    cfg = small(named_config(name))
+    model = build_model(cfg, 0.1)
+    batch = Batch.from_data_list(graphs)
+    d_unl, d_ed = model(batch)
+    assert d_unl.shape == (batch.num_nodes, 3)
+    assert (d_ed is None) == (not cfg.cycle)
+    if d_ed is not None:
+        assert d_ed.shape == (batch.num_nodes, 3)
+    terms = loss_terms(d_unl, d_ed, batch, cfg.lambda_cycle)
+    terms["loss"].backward()
+    assert all(p.grad is not None for p in model.parameters()), "every parameter takes part (DDP needs it)"
+
+
+def test_paper_size_model():
+    n = count_parameters(build_model(named_config("paper")))
+    assert 1.5e6 < n < 3.5e6  # GAT 3 × (128 × 4 heads) = 512 features, ~2 M parameters
+    with pytest.raises(TrainerError):
+        named_config("A9")
+
+
+def _permuted(g, perm):
+    inv = torch.empty_like(perm)
+    inv[perm] = torch.arange(len(perm))
+    h = g.clone()
+    h.x, h.y, h.region = g.x[perm], g.y[perm], g.region[perm]
+    h.edge_index = inv[g.edge_index]
+    return h
+
+
+@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5"])
+def test_permutation_equivariance(name, graphs):
+    torch.manual_seed(1)
+    model = build_model(small(named_config(name)), 0.1).eval()
+    g = graphs[0]
+    perm = torch.randperm(g.num_nodes)
+    with torch.no_grad():
+        a, ca = model(Batch.from_data_list([g]))
+        b, cb = model(Batch.from_data_list([_permuted(g, perm)]))
+    torch.testing.assert_close(b, a[perm], atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(cb, ca[perm], atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["paper", "multitoken", "C6"])
+def test_mesh_size_agnostic_batching(name, graphs):
+    """Two meshes of different node counts in one batch give what each gives alone."""
+    torch.manual_seed(2)
+    model = build_model(small(named_config(name)), 0.1).eval()
+    with torch.no_grad():
+        together, _ = model(Batch.from_data_list(graphs))
+        alone = [model(Batch.from_data_list([g]))[0] for g in graphs]
+    torch.testing.assert_close(together, torch.cat(alone), atol=1e-5, rtol=1e-4)
+
+
+def test_single_token_attention_is_value_projection():
+    """With one key/value token the softmax weight is 1: the general module with a second, masked
+    token equals the single-token form h ← LN(h + W_o W_v c)."""
+    torch.manual_seed(3)
+    W, B = 16, 3
+    general = CrossAttention(W, W, heads=4, n_tokens=2)
+    single = CrossAttention(W, W, heads=4, n_tokens=1)
+    single.v, single.o, single.norm = general.v, general.o, general.norm
+    batch = torch.repeat_interleave(torch.arange(B), torch.tensor([5, 7, 4]))
+    h = torch.randn(len(batch), W)
+    tokens = torch.randn(B, 2, W)
+    mask = torch.tensor([[False, True]] * B)
+    torch.testing.assert_close(general(h, batch, tokens, mask), single(h, batch, tokens[:, :1]), atol=1e-5, rtol=1e-5)
+    assert not hasattr(single, "q") and not hasattr(single, "k")
+
+
+def test_cycle_term_trains_on_unlabelled_cases(graphs):
+    """Unlabelled cases contribute only λ·cycle: non-zero gradients, and steps on them alone reduce it.
+    Without the cycle (A1) they contribute nothing."""
+    unlabelled = []
+    for g in graphs:
+        h = g.clone()
+        h.y = torch.full_like(g.y, float("nan"))
+        h.labelled = torch.tensor([False])
+        unlabelled.append(h)
+    batch = Batch.from_data_list(unlabelled)
+
+    torch.manual_seed(4)
+    model = build_model(small(named_config("paper")), 0.1)
+    model.eval()  # no dropout: a clean before/after comparison
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    first = None
+    for step in range(30):
+        d_unl, d_ed = model(batch)
+        terms = loss_terms(d_unl, d_ed, batch, 0.2)
+        assert float(terms["sup"].detach()) == 0.0 and terms["labelled_nodes"] == 0
+        torch.testing.assert_close(terms["loss"], 0.2 * terms["cycle"])
+        if first is None:
+            first = float(terms["loss"].detach())
+            opt.zero_grad()
+            terms["loss"].backward()
+            assert sum(float(p.grad.abs().sum()) for p in model.parameters() if p.grad is not None) > 0
+            opt.step()
+            continue
+        opt.zero_grad()
+        terms["loss"].backward()
+        opt.step()
+    assert float(terms["loss"].detach()) < 0.5 * first
+
+    a1 = build_model(small(named_config("A1")), 0.1)
+    d_unl, d_ed = a1(batch)
+    terms = loss_terms(d_unl, d_ed, batch, 0.2)
+    terms["loss"].backward()
+    assert float(terms["loss"].detach()) == 0.0
+    assert all(float(p.grad.abs().sum()) == 0.0 for p in a1.parameters())
+
+
+def test_supervised_term_ignores_withheld_labels(graphs):
+    """A labelled and an unlabelled graph in one batch: the supervised MSE is over the labelled
+    graph's nodes only (the NaN targets of the other never reach the loss)."""
+    torch.manual_seed(5)
+    model = build_model(small(named_config("paper")), 0.1).eval()
+    u = graphs[1].clone()
+    u.y = torch.full_like(u.y, float("nan"))
+    u.labelled = torch.tensor([False])
+    batch = Batch.from_data_list([graphs[0], u])
+    with torch.no_grad():
+        d_unl, d_ed = model(batch)
+        terms = loss_terms(d_unl, d_ed, batch, 0.2)
+    n0 = graphs[0].num_nodes
+    expected = torch.mean((d_unl[:n0] - graphs[0].y) ** 2)
+    torch.testing.assert_close(terms["sup"], expected)
+    assert terms["labelled_nodes"] == n0 and torch.isfinite(terms["loss"])

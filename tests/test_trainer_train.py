@@ -1,0 +1,161 @@
+"""The plain training loop (checkpoint, metrics CSV, resume, refusal to mix runs), safe checkpoint
+loading, the PCA baseline, a two-epoch Ray Train run on 2 gloo CPU workers that resumes, and
+evaluation metrics against hand-computed values."""
+from __future__ import annotations
+
+import csv
+import pickle
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from trainer.checkpoint import load_checkpoint, load_run, save_checkpoint
+from trainer.config import PAPER, TrainConfig, TrainerError, named_config
+from trainer.evaluate import evaluate_run
+from trainer.loop import fit
+from trainer.metrics import case_metrics, dsc, hausdorff, nn_mean_distance, nodewise_error
+from trainer.predict import Predictor
+from trainer_fixtures import make_tiny_store
+
+SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    return make_tiny_store(tmp_path_factory.mktemp("trainer_train") / "tiny.zarr", shapes=4)
+
+
+def _cfg(store, **kw) -> TrainConfig:
+    base = dict(store=store, config_name="paper-small", model=SMALL, epochs=2, batch_size=4, num_threads=1)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
+    run = tmp_path / "run"
+    s = fit(_cfg(store), run)
+    assert s["epoch"] == 2 and s["resumed_from"] == 0
+    state = load_run(run)
+    assert state["epoch"] == 2 and state["kind"] == "gnn"
+    assert {"model", "best_model", "optimizer", "scheduler", "normalisation", "train_config", "split"} <= set(state)
+    assert len(_rows(run / "metrics.csv")) == 2
+    assert set(_rows(run / "metrics.csv")[0]) >= {"epoch", "train_loss", "val_loss", "val_md_mm", "lr"}
+    s = fit(_cfg(store, epochs=3), run)
+    assert s["resumed_from"] == 2 and s["epoch"] == 3 and s["epochs_run"] == 1
+    assert [int(r["epoch"]) for r in _rows(run / "metrics.csv")] == [1, 2, 3]
+    assert load_run(run)["epoch"] == 3
+    with pytest.raises(TrainerError, match="another"):
+        fit(_cfg(store, epochs=3, sr=0.5), run)
+    with pytest.raises(TrainerError, match="another"):
+        fit(_cfg(store, epochs=3, model=replace(SMALL, cycle=False)), run)
+
+
+def test_checkpoints_load_without_unpickling_objects(tmp_path):
+    good = tmp_path / "good.pt"
+    save_checkpoint(good, {"kind": "gnn", "train_config": {}, "normalisation": {}, "fingerprint": {}, "split": {},
+                           "epoch": 1, "model": {"w": torch.ones(2)}})
+    assert load_checkpoint(good)["model"]["w"].sum() == 2
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": "heartctl.trainer.checkpoint", "payload": _Evil()}, evil)  # an arbitrary object
+    with pytest.raises(TrainerError, match="cannot read checkpoint"):
+        load_checkpoint(evil)
+    junk = tmp_path / "junk.pt"
+    junk.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(TrainerError, match="cannot read checkpoint"):
+        load_checkpoint(junk)
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(1)}, other)
+    with pytest.raises(TrainerError, match="not a heartctl"):
+        load_checkpoint(other)
+    with pytest.raises(TrainerError, match="no checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+class _Evil:
+    def __reduce__(self):
+        return (pickle.loads, (b"I1\n.",))
+
+
+def test_metrics_on_a_hand_computed_case():
+    true = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
+    pred = true + np.array([[0.05, 0, 0], [0, 0.5, 0], [0, 0, -2.0], [0, 0, 0]])
+    err = nodewise_error(pred, true)
+    np.testing.assert_allclose(err, [0.05, 0.5, 2.0, 0.0])
+    assert dsc(err, 1.0) == 0.75 and dsc(err, 0.1) == 0.5
+    assert hausdorff(pred, true) == pytest.approx(2.0)  # every node's nearest is its own partner here
+    assert nn_mean_distance(pred, true) == pytest.approx(2.55 / 4)
+    m = case_metrics(pred, true)
+    assert m["md_mm"] == pytest.approx(2.55 / 4)
+    assert m["sd_mm"] == pytest.approx(np.sqrt(np.mean((np.array([0.05, 0.5, 2.0, 0.0]) - 2.55 / 4) ** 2)))
+    # Hausdorff is of node sets: a node moved onto another one's place costs nothing
+    swapped = true[[1, 0, 2, 3]]
+    assert hausdorff(swapped, true) == 0.0 and case_metrics(swapped, true)["md_mm"] > 0
+
+
+def test_evaluate_equals_hand_computed_metrics(store, tmp_path):
+    run = tmp_path / "run"
+    fit(_cfg(store, epochs=1), run)
+    report = evaluate_run(run, store, "test", plots=False)
+    state = load_run(run)
+    pred = Predictor(state)
+    from trainer.data import read_store
+
+    cases = read_store(store)
+    keys = [tuple(k) for k in state["split"]["test"]]
+    md, sd, hd, d1, d01 = [], [], [], [], []
+    for k in keys:
+        f = cases.features[k[0]]
+        guess = f.ed_mm + pred.predict(f, cases.params[k])
+        e = np.sqrt(((guess - cases.unloaded[k]) ** 2).sum(axis=1))
+        md.append(e.mean())
+        sd.append(e.std())
+        d1.append((e < 1.0).mean())
+        d01.append((e < 0.1).mean())
+        dists = np.sqrt(((guess[:, None, :] - cases.unloaded[k][None, :, :]) ** 2).sum(axis=2))
+        hd.append(max(dists.min(axis=1).max(), dists.min(axis=0).max()))
+    s = report["summary"]
+    assert s["cases"] == len(keys)
+    assert s["md_mm"] == pytest.approx(np.mean(md), rel=1e-6)
+    assert s["sd_mm"] == pytest.approx(np.mean(sd), rel=1e-6)
+    assert s["hd_mm"] == pytest.approx(np.mean(hd), rel=1e-6)
+    assert s["dsc_1mm"] == pytest.approx(np.mean(d1)) and s["dsc_01mm"] == pytest.approx(np.mean(d01))
+    assert s["ms_per_case"] > 0
+    out = tmp_path / "run" / "eval_test"
+    assert (out / "cases.csv").is_file() and (out / "by_parameter.csv").is_file() and (out / "summary.json").is_file()
+    assert len(_rows(out / "cases.csv")) == len(keys)
+
+
+def test_pca_baseline_fits_and_evaluates(store, tmp_path):
+    run = tmp_path / "pca"
+    fit(_cfg(store, config_name="pca", model=named_config("pca")), run)
+    assert load_run(run)["kind"] == "pca"
+    r = evaluate_run(run, store, "test", plots=False)
+    # the synthetic displacement is smooth and low-dimensional: the baseline should get close
+    assert r["summary"]["md_mm"] < 0.5 and r["summary"]["cases"] > 0
+
+
+def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
+    ray = pytest.importorskip("ray")
+    from trainer.ray_train import train_with_ray
+
+    run = tmp_path / "ray_run"
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        s = train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=2, max_failures=0)
+        assert s["epoch"] == 2 and s["workers"] == 2 and s["backend"] == "gloo"
+        state = load_run(run)
+        assert state["epoch"] == 2 and len(state["history"]) == 2
+        assert any(p.name.startswith("checkpoint_") for p in (run / "ray").iterdir())
+        s = train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=2, max_failures=0)
+        state = load_run(run)
+        assert s["epoch"] == 3 and state["epoch"] == 3
+        assert [h["epoch"] for h in state["history"]] == [1, 2, 3]  # epochs 1–2 came from the checkpoint
+    finally:
+        ray.shutdown()

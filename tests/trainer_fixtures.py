@@ -1,0 +1,54 @@
+"""Tiny synthetic stores for the trainer tests: real gmsh LV meshes (~120 nodes), unloaded geometries
+from a smooth closed-form shrink that depends on P and C (no FE solve), written with the PairStore API."""
+from __future__ import annotations
+
+import numpy as np
+
+from orchestrator.grid import SweepSpec
+from solver.meshing import mesh_lv
+from solver.shape_model import lv_shape
+from storage.store import DONE, PairStore, stats_row
+
+_MESHES: dict = {}
+
+
+def tiny_spec(shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0), stiffness=(100.0, 200.0)) -> SweepSpec:
+    return SweepSpec(shapes=shapes, pressure_mmhg=pressures, stiffness_pa=stiffness, helix_endo_deg=(60.0,),
+                     helix_epi_deg=(-60.0,), fidelity="fast", seed=seed, nodes=120)
+
+
+def lv_mesh(shape_id: int, seed: int = 0, nodes: int = 120):
+    key = (shape_id, seed, nodes)
+    if key not in _MESHES:
+        _MESHES[key] = mesh_lv(lv_shape(shape_id, seed), nodes)
+    return _MESHES[key]
+
+
+def synthetic_unloaded(nodes: np.ndarray, pressure_mmhg: float, stiffness_pa: float) -> np.ndarray:
+    """A smooth, P- and C-dependent shrink towards the long axis and the base (mm)."""
+    s = 0.012 * pressure_mmhg * (100.0 / stiffness_pa) ** 0.5
+    z = nodes[:, 2]
+    depth = -z / max(-z.min(), 1e-9)  # 0 at the base, 1 at the apex
+    out = nodes.copy()
+    out[:, :2] *= (1.0 - s * (1.0 + 0.3 * depth))[:, None]
+    out[:, 2] *= 1.0 - 0.5 * s
+    return out
+
+
+def make_tiny_store(path, shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0), stiffness=(100.0, 200.0),
+                    attrs: dict | None = None) -> str:
+    """Write a store with every case done; returns its location."""
+    spec = tiny_spec(shapes, seed, pressures, stiffness)
+    store = PairStore.create(str(path), {**spec.store_attrs(), **(attrs or {})})
+    params = spec.case_params()
+    for s in range(shapes):
+        m = lv_mesh(s, seed)
+        store.write_shape(s, m.nodes, m.tets, m.endo, m.epi, m.base, np.zeros(3), {})
+        for k, (p, c, _, _) in enumerate(params):
+            unloaded = synthetic_unloaded(m.nodes, p, c)
+            stats = {"min_jacobian": 0.9, "roundtrip_error_mm": 1e-6, "final_residual": 1e-9}
+            reason = store.write_pair(s, k, unloaded, m.nodes, stats)
+            assert reason is None, reason
+            store.set_case(s, k, DONE, stats_row({**stats, "run": 0}))
+    store.flush()
+    return str(path)

@@ -1,0 +1,89 @@
+"""`heartctl bench model`: inference ms per case at several batch sizes and training graphs/s for
+a configured model on a real LV mesh, in plain eager PyTorch (no Ray)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from solver.parameters import PAPER_GRID
+from storage.store import PARAM_NAMES
+
+from ._malloc import tune_allocator
+from .config import TrainerError, named_config
+from .data import Normalisation, case_graph, mesh_features
+from .model import build_model, count_parameters, loss_terms
+
+
+def _timed(fn, device, min_s: float = 1.0, min_runs: int = 3, max_runs: int = 200) -> float:
+    """Seconds per call (after one warm-up call)."""
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    runs, t0 = 0, time.perf_counter()
+    while runs < min_runs or (time.perf_counter() - t0 < min_s and runs < max_runs):
+        fn()
+        runs += 1
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+    return (time.perf_counter() - t0) / runs
+
+
+def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
+                train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0) -> dict:
+    from torch_geometric.data import Batch
+
+    from solver.meshing import mesh_lv
+    from solver.shape_model import lv_shape
+
+    tune_allocator()
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise TrainerError("--device cuda: no CUDA device is available here")
+    cfg = named_config(config)
+    if cfg.kind != "gnn":
+        raise TrainerError("bench model times the graph network; choose a gnn --config")
+    torch.manual_seed(seed)
+    mesh = mesh_lv(lv_shape(0, seed), nodes)
+    feat = mesh_features(mesh)
+    c = feat.ed_mm.mean(axis=0)
+    norm = Normalisation(tuple(c), float(np.sqrt(((feat.ed_mm - c) ** 2).sum(axis=1).mean())), 1.0,
+                         tuple(min(PAPER_GRID[a]) for a in PARAM_NAMES), tuple(max(PAPER_GRID[a]) for a in PARAM_NAMES))
+    rng = np.random.default_rng(seed)
+
+    def graph():
+        p = [rng.choice(PAPER_GRID[a]) for a in PARAM_NAMES]
+        return case_graph(feat, p, norm, feat.ed_mm + rng.normal(0, 1, feat.ed_mm.shape), True)
+
+    model = build_model(cfg, 0.1).to(dev)
+    amp = torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=bool(bf16 and dev.type == "cuda"))
+    rows = []
+    model.eval()
+    for b in batches:
+        data = Batch.from_data_list([graph() for _ in range(b)]).to(dev)
+
+        def infer():
+            with torch.no_grad(), amp:
+                model(data, cycle=False)
+
+        s = _timed(infer, dev, min_s)
+        rows.append({"batch": b, "ms_per_batch": s * 1e3, "ms_per_case": s * 1e3 / b})
+    tb = train_batch or (128 if dev.type == "cuda" else 32)
+    data = Batch.from_data_list([graph() for _ in range(tb)]).to(dev)
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        with amp:
+            d_unl, d_ed = model(data)
+        loss_terms(d_unl, d_ed, data, cfg.lambda_cycle)["loss"].backward()
+        opt.step()
+
+    s = _timed(step, dev, min_s, min_runs=2)
+    return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+            "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
+            "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
+            "bf16": bool(bf16 and dev.type == "cuda"), "inference": rows, "train_batch": tb,
+            "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle}

@@ -1,0 +1,146 @@
+"""Named configurations of HeartUnloadNet (paper, multitoken, ablations A1–A5, baselines C0–C6, PCA)
+and of a training run, as frozen dataclasses that round-trip through plain dicts (checkpoints, JSON)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+
+
+class TrainerError(ValueError):
+    """Bad input to training / evaluation / network unloading; the message is one line."""
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Which parts make up the network. Every ablation and baseline is a value of this, not a copy
+    of the model.
+
+    conv: mesh-encoder layer — gat | gatv2 | gcn | sage
+    pooling: mesh context from node features — mean | max | none (no mesh-context attention)
+    tokens: global context — single (one pooled token, one parameter token: the paper's) |
+            regional (pools over base/mid/apex × endo/epi plus the global pool; one token per
+            parameter plus the joint one), so the attention weights can differ between tokens
+    fusion: how the parameters reach the nodes — attention | concat | broadcast (raw parameters
+            appended to the node input; no global encoder)
+    decoder: mlp | gat
+    cycle: run the shared encoder on the predicted unloaded mesh and decode back to ED
+    kind: gnn | pca (the PCA displacement baseline; the other fields are ignored)
+    """
+
+    conv: str = "gat"
+    hidden: int = 128  # per head
+    heads: int = 4
+    layers: int = 3
+    dropout: float = 0.1
+    pooling: str = "mean"
+    tokens: str = "single"
+    fusion: str = "attention"
+    decoder: str = "mlp"
+    cycle: bool = True
+    lambda_cycle: float = 0.2
+    param_hidden: int = 128
+    decoder_hidden: tuple = (256, 128)
+    kind: str = "gnn"
+    pca_components: int = 16
+    pca_ridge: float = 1e-2
+
+    def __post_init__(self):
+        object.__setattr__(self, "decoder_hidden", tuple(int(v) for v in self.decoder_hidden))
+        choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
+                   "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
+                   "decoder": ("mlp", "gat"), "kind": ("gnn", "pca")}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
+        if self.hidden < 1 or self.heads < 1 or self.layers < 1:
+            raise TrainerError("model hidden, heads and layers must be ≥ 1")
+        if not 0 <= self.dropout < 1:
+            raise TrainerError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    @property
+    def width(self) -> int:
+        """Node feature width (heads concatenated): 128 × 4 = 512 for the paper."""
+        return self.hidden * self.heads
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["decoder_hidden"] = list(self.decoder_hidden)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ModelConfig":
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+PAPER = ModelConfig()
+NAMED_CONFIGS: dict[str, ModelConfig] = {
+    "paper": PAPER,
+    "multitoken": replace(PAPER, tokens="regional"),
+    "A1": replace(PAPER, cycle=False),  # no cycle
+    "A2": replace(PAPER, fusion="concat"),  # concatenation instead of attention fusion
+    "A3": replace(PAPER, pooling="none"),  # no pooling / mesh context
+    "A4": replace(PAPER, conv="gcn"),  # GCN instead of GAT
+    "A5": replace(PAPER, fusion="broadcast"),  # parameters broadcast to the nodes
+    "C0": replace(PAPER, conv="gatv2"),
+    "C2": replace(PAPER, conv="sage"),
+    "C5": replace(PAPER, decoder="gat"),
+    "C6": replace(PAPER, pooling="max"),
+    "pca": replace(PAPER, kind="pca", cycle=False),
+}
+CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
+               "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | pca")
+
+
+def named_config(name: str) -> ModelConfig:
+    key = {k.lower(): k for k in NAMED_CONFIGS}.get(str(name).lower())
+    if key is None:
+        raise TrainerError(f"unknown --config {name!r}; choose {', '.join(NAMED_CONFIGS)}")
+    return NAMED_CONFIGS[key]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run: data, split, optimisation. Lengths mm; lr per AdamW step."""
+
+    store: str
+    config_name: str = "paper"
+    model: ModelConfig = PAPER
+    split: str = "shape"
+    sr: float = 1.0  # supervision ratio: fraction of training cases whose label is used
+    seed: int = 0
+    epochs: int = 500
+    batch_size: int = 16
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    patience: int = 50  # early stopping, epochs without a better validation loss
+    lr_patience: int = 10  # ReduceLROnPlateau
+    lr_factor: float = 0.5
+    bf16: bool = False  # autocast on CUDA only
+    checkpoint_every: int = 1
+    num_threads: int = 0  # torch threads per process (0: leave as is)
+
+    def __post_init__(self):
+        if not 0 < self.sr <= 1:
+            raise TrainerError(f"--sr must be in (0, 1], got {self.sr}")
+        if self.epochs < 1:
+            raise TrainerError(f"--epochs must be ≥ 1, got {self.epochs}")
+        if self.batch_size < 1:
+            raise TrainerError(f"--batch-size must be ≥ 1, got {self.batch_size}")
+        if self.seed < 0:
+            raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d["model"] = self.model.as_dict()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(cls)}
+        d = {k: v for k, v in d.items() if k in names}
+        d["model"] = ModelConfig.from_dict(d.get("model", {}))
+        return cls(**d)
+
+    def identity(self) -> dict:
+        """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
+        return {"model": self.model.as_dict(), "split": self.split, "sr": self.sr, "seed": self.seed}

@@ -1,0 +1,246 @@
+"""Done cases of a store as PyG graphs (one per case, edges from tet edges both ways), the
+normalisation fitted on the training split only, and the store fingerprint a run is tied to."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from torch_geometric.data import Data
+
+from storage.store import PARAM_NAMES, PairReader, StoreError
+
+from .config import TrainerError
+from .splits import make_split, supervised_subset
+
+N_REGIONS = 6  # base / mid / apex × endo / epi half of the wall
+TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+
+
+# --------------------------------------------------------------------------- normalisation
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """x̂ = (x − centre) / scale for coordinates (mm); ŷ = (X − x) / disp_scale for the unloading
+    displacement (mm); p̂ = (p − lo) / (hi − lo) per parameter, lo/hi the store grid's bounds (an axis
+    with one value maps to 0). Fitted on the training split only."""
+
+    centre_mm: tuple
+    scale_mm: float
+    disp_scale_mm: float
+    param_lo: tuple
+    param_hi: tuple
+
+    @property
+    def disp_to_coord(self) -> float:
+        """A normalised displacement expressed in normalised coordinates (disp_scale / scale)."""
+        return self.disp_scale_mm / self.scale_mm
+
+    def coords(self, nodes_mm: np.ndarray) -> np.ndarray:
+        return (np.asarray(nodes_mm, dtype=np.float64) - np.asarray(self.centre_mm)) / self.scale_mm
+
+    def params(self, values) -> np.ndarray:
+        lo, hi = np.asarray(self.param_lo), np.asarray(self.param_hi)
+        span = np.where(hi > lo, hi - lo, 1.0)
+        return np.where(hi > lo, (np.asarray(values, dtype=np.float64) - lo) / span, 0.0)
+
+    def as_dict(self) -> dict:
+        return {"centre_mm": [float(v) for v in self.centre_mm], "scale_mm": float(self.scale_mm),
+                "disp_scale_mm": float(self.disp_scale_mm), "param_lo": [float(v) for v in self.param_lo],
+                "param_hi": [float(v) for v in self.param_hi]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Normalisation":
+        return cls(tuple(d["centre_mm"]), float(d["scale_mm"]), float(d["disp_scale_mm"]), tuple(d["param_lo"]),
+                   tuple(d["param_hi"]))
+
+    @classmethod
+    def fit(cls, ed_nodes: list, displacements: list, grid: dict) -> "Normalisation":
+        """ed_nodes: the ED node arrays of the training cases; displacements: unloaded − ED of the
+        labelled training cases (mm); grid: the store's parameter axes."""
+        allx = np.concatenate([np.asarray(x, dtype=np.float64) for x in ed_nodes])
+        centre = allx.mean(axis=0)
+        scale = float(np.sqrt(((allx - centre) ** 2).sum(axis=1).mean()))
+        d = np.concatenate([np.asarray(u, dtype=np.float64) for u in displacements]) if displacements else np.zeros((1, 3))
+        disp_scale = float(np.sqrt((d**2).mean()))
+        if not (scale > 0 and math.isfinite(scale)):
+            raise TrainerError("training ED coordinates have no spread; cannot normalise")
+        if not (disp_scale > 1e-9 and math.isfinite(disp_scale)):
+            disp_scale = 1.0
+        lo = tuple(float(min(grid[a])) for a in PARAM_NAMES)
+        hi = tuple(float(max(grid[a])) for a in PARAM_NAMES)
+        return cls(tuple(float(v) for v in centre), scale, disp_scale, lo, hi)
+
+
+# --------------------------------------------------------------------------- mesh features
+
+
+def mesh_edges(tets: np.ndarray) -> torch.Tensor:
+    """[2, E] long: every tet edge once in each direction, sorted, no duplicates."""
+    t = np.asarray(tets, dtype=np.int64)
+    e = np.concatenate([t[:, [a, b]] for a, b in TET_EDGES])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    both = np.concatenate([e, e[:, ::-1]])
+    both = both[np.lexsort((both[:, 1], both[:, 0]))]
+    return torch.from_numpy(np.ascontiguousarray(both.T))
+
+
+def wall_coordinates(nodes: np.ndarray, endo_nodes: np.ndarray, epi_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ζ, τ) per node: ζ = 0 at the base plane … 1 at the apex (by z), τ = d_endo / (d_endo + d_epi)
+    (0 on the endocardium, 1 on the epicardium), from distances to the surface nodes."""
+    from scipy.spatial import cKDTree
+
+    z = nodes[:, 2]
+    zeta = (z.max() - z) / max(z.max() - z.min(), 1e-12)
+    if len(endo_nodes) == 0 or len(epi_nodes) == 0:
+        return zeta, np.full(len(nodes), 0.5)
+    d_en = cKDTree(nodes[endo_nodes]).query(nodes)[0]
+    d_ep = cKDTree(nodes[epi_nodes]).query(nodes)[0]
+    tau = d_en / np.maximum(d_en + d_ep, 1e-12)
+    return zeta, tau
+
+
+def node_regions(zeta: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Region id 0..5 = 3 · [τ ≥ ½] + (base, mid, apex third of ζ)."""
+    third = np.minimum((zeta * 3).astype(np.int64), 2)
+    return third + 3 * (tau >= 0.5).astype(np.int64)
+
+
+@dataclass
+class MeshFeatures:
+    """What one mesh topology contributes to its graphs (shared by all cases of a shape)."""
+
+    ed_mm: np.ndarray  # [n,3]
+    edge_index: torch.Tensor  # [2,E]
+    region: torch.Tensor  # [n] long
+    zeta: np.ndarray
+    tau: np.ndarray
+    tets: np.ndarray = field(repr=False, default=None)
+
+
+def mesh_features(mesh) -> MeshFeatures:
+    """Features of a solver TetMesh (nodes in mm)."""
+    nodes = np.asarray(mesh.nodes, dtype=np.float64)
+    zeta, tau = wall_coordinates(nodes, mesh.endo_nodes(), mesh.epi_nodes())
+    return MeshFeatures(nodes, mesh_edges(mesh.tets), torch.from_numpy(node_regions(zeta, tau)), zeta, tau,
+                        np.asarray(mesh.tets))
+
+
+def case_graph(feat: MeshFeatures, params, norm: Normalisation, unloaded_mm: np.ndarray | None = None,
+               labelled: bool = True, key=(-1, -1)) -> Data:
+    """One case as a graph: x = normalised ED coordinates [n,3]; y = normalised unloading
+    displacement (NaN when the label is withheld or unknown); params [1,4] in [0,1]."""
+    x = norm.coords(feat.ed_mm)
+    if unloaded_mm is not None and labelled:
+        y = (np.asarray(unloaded_mm, dtype=np.float64) - feat.ed_mm) / norm.disp_scale_mm
+    else:
+        y = np.full_like(x, np.nan)
+    return Data(x=torch.from_numpy(x.astype(np.float32)), edge_index=feat.edge_index,
+                y=torch.from_numpy(y.astype(np.float32)),
+                params=torch.from_numpy(norm.params(params).astype(np.float32)).view(1, -1),
+                region=feat.region, labelled=torch.tensor([bool(labelled and unloaded_mm is not None)]),
+                key=torch.tensor([[int(key[0]), int(key[1])]], dtype=torch.long))
+
+
+# --------------------------------------------------------------------------- the store
+
+
+@dataclass
+class StoreCases:
+    """Done cases of a store in memory: per shape its mesh features, per case params and unloaded."""
+
+    attrs: dict
+    features: dict  # shape_id → MeshFeatures
+    params: dict  # (s, k) → np.ndarray [4]
+    unloaded: dict  # (s, k) → np.ndarray [n,3] mm
+
+    @property
+    def keys(self) -> list:
+        return sorted(self.params)
+
+
+def open_reader(location) -> PairReader:
+    try:
+        return PairReader(str(location))
+    except StoreError:
+        raise
+    except Exception as exc:  # zarr/filesystem errors on a damaged store
+        raise StoreError(f"cannot read store {location}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
+def read_store(location, keys: list | None = None) -> StoreCases:
+    """Read done cases (all, or the given keys) of a store into memory."""
+    reader = open_reader(location)
+    wanted = None if keys is None else {(int(a), int(b)) for a, b in keys}
+    shape_ids = reader.shape_ids() if wanted is None else sorted({k[0] for k in wanted} & set(reader.shape_ids()))
+    features, params, unloaded = {}, {}, {}
+    attrs = dict(reader.attrs)
+    attrs["shape_source_split"] = {s: reader._shape(s).attrs.get("source_split") for s in shape_ids}
+    for case in reader.iter_done(shape_ids):
+        key = (case.shape_id, case.index)
+        if wanted is not None and key not in wanted:
+            continue
+        if case.shape_id not in features:
+            features[case.shape_id] = mesh_features(reader.mesh(case.shape_id))
+        params[key] = np.array([case.params[a] for a in PARAM_NAMES], dtype=np.float64)
+        unloaded[key] = np.asarray(case.unloaded, dtype=np.float64)
+    return StoreCases(attrs, features, params, unloaded)
+
+
+def store_fingerprint(attrs: dict, features: dict) -> dict:
+    """What ties a run to its store: grid, fidelity, seed, base, and the node count of each shape."""
+    return {"grid": attrs.get("grid"), "fidelity": attrs.get("fidelity"), "seed": attrs.get("seed"),
+            "base": attrs.get("base"), "mesh_nodes": attrs.get("mesh_nodes"),
+            "shape_nodes": {str(s): int(f.ed_mm.shape[0]) for s, f in sorted(features.items())}}
+
+
+def check_fingerprint(saved: dict, attrs: dict, features: dict, location) -> None:
+    """Raise TrainerError (one line) when the store is not the one the run was trained on."""
+    now = store_fingerprint(attrs, features)
+    for name in ("grid", "fidelity", "seed", "base"):
+        if saved.get(name) != now.get(name):
+            raise TrainerError(f"store {location} does not match the run: {name} is {now.get(name)!r}, "
+                               f"the run was trained on {saved.get(name)!r}")
+    for s, n in now["shape_nodes"].items():
+        if s in saved.get("shape_nodes", {}) and saved["shape_nodes"][s] != n:
+            raise TrainerError(f"store {location} does not match the run: shape {s} has {n} nodes, "
+                               f"the run's store had {saved['shape_nodes'][s]}")
+
+
+@dataclass
+class DataBundle:
+    train: list
+    val: list
+    test: list
+    norm: Normalisation
+    split: dict  # name → sorted keys
+    labelled: set
+    fingerprint: dict
+    cases: StoreCases = field(repr=False, default=None)
+
+
+def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: set | None = None) -> list:
+    out = []
+    for key in keys:
+        lab = labelled is None or key in labelled
+        out.append(case_graph(cases.features[key[0]], cases.params[key], norm, cases.unloaded[key], lab, key))
+    return out
+
+
+def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 1.0,
+                        cases: StoreCases | None = None) -> DataBundle:
+    """Read the store, split it, withhold labels outside the SR subset, fit the normalisation on
+    the training split (ED coordinates of every training case; displacements of labelled ones)."""
+    cases = cases or read_store(store)
+    if not cases.params:
+        raise TrainerError(f"store {store} has no done cases to train on")
+    parts = make_split(cases.keys, cases.params, split, seed, cases.attrs)
+    labelled = supervised_subset(parts["train"], sr, seed)
+    train_ed = [cases.features[k[0]].ed_mm for k in parts["train"]]
+    train_disp = [cases.unloaded[k] - cases.features[k[0]].ed_mm for k in parts["train"] if k in labelled]
+    norm = Normalisation.fit(train_ed, train_disp, cases.attrs["grid"])
+    return DataBundle(build_graphs(cases, parts["train"], norm, labelled), build_graphs(cases, parts["val"], norm),
+                      build_graphs(cases, parts["test"], norm), norm, parts, labelled,
+                      store_fingerprint(cases.attrs, cases.features), cases)

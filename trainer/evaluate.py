@@ -1,0 +1,171 @@
+"""Evaluation of a run on a split of its store: metrics table (mean ± SD over cases), per-case CSV,
+breakdown per parameter value, inference time, PNG plots and a VTU error map."""
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from storage.store import PARAM_NAMES
+
+from .checkpoint import load_run
+from .config import TrainerError
+from .data import check_fingerprint, read_store
+from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
+from .predict import Predictor
+
+SPLITS = ("test", "val", "train", "all")
+
+
+def _keys_for(state: dict, split: str) -> list | None:
+    if split not in SPLITS:
+        raise TrainerError(f"unknown --split {split!r}; choose {', '.join(SPLITS)}")
+    if split == "all":
+        return None
+    keys = [tuple(int(v) for v in k) for k in state["split"].get(split, [])]
+    if not keys:
+        raise TrainerError(f"the run's {split} split is empty (split {state['train_config'].get('split')!r})")
+    return keys
+
+
+def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_dir=None, plots: bool = True,
+                 batch_size: int = 32, timing_cases: int = 50) -> dict:
+    """Predict every case of the split and compare with the FE unloaded geometry (mm)."""
+    run_dir = Path(run_dir)
+    state = load_run(run_dir)
+    keys = _keys_for(state, split)
+    pred = Predictor(state, device)
+    cases = read_store(store, keys)
+    if keys is not None:
+        check_fingerprint(state["fingerprint"], cases.attrs, cases.features, store)
+        missing = [k for k in keys if k not in cases.params]
+        if missing:
+            raise TrainerError(f"store {store} lacks {len(missing)} of the run's {len(keys)} {split} cases "
+                               f"(e.g. shape {missing[0][0]} case {missing[0][1]}): not the store the run was trained on")
+    else:
+        keys = cases.keys
+        if not keys:
+            raise TrainerError(f"store {store} has no done cases")
+    items = [(cases.features[k[0]], cases.params[k], k[0]) for k in keys]
+    disps = pred.predict_many(items, batch_size)
+    single_ms = pred.time_ms_per_case(items[:timing_cases], 1)
+    batched_ms = pred.time_ms_per_case(items[:max(timing_cases, batch_size)], batch_size)
+    rows, errors = [], []
+    for k, (feat, params, _), d in zip(keys, items, disps):
+        true = cases.unloaded[k]
+        guess = feat.ed_mm + d
+        m = case_metrics(guess, true)
+        errors.append(nodewise_error(guess, true))
+        rows.append({"shape_id": k[0], "case": k[1], **dict(zip(PARAM_NAMES, map(float, params))),
+                     "nodes": int(feat.ed_mm.shape[0]), **m})
+    agg = aggregate(rows)
+    summary = {"dsc_1mm": agg["dsc_1mm"][0], "dsc_01mm": agg["dsc_01mm"][0], "hd_mm": agg["hd_mm"][0],
+               "md_mm": agg["md_mm"][0], "sd_mm": agg["sd_mm"][0], "ms_per_case": single_ms, "cases": len(rows)}
+    extras = {"nn_md_mm": agg["nn_md_mm"][0], "ms_per_case_batched": batched_ms, "batch_size": batch_size,
+              "split": split, "config": pred.cfg.config_name, "kind": pred.kind, "device": str(pred.device),
+              "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
+    by_param = _by_parameter(rows)
+    out_dir = Path(out_dir) if out_dir else run_dir / f"eval_{split}"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _write_rows(out_dir / "cases.csv", rows)
+    _write_rows(out_dir / "by_parameter.csv", by_param)
+    (out_dir / "summary.json").write_text(json.dumps({**summary, **extras, "aggregate": agg}, indent=2))
+    files = ["cases.csv", "by_parameter.csv", "summary.json"]
+    median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
+    files += _error_map_vtu(out_dir, store, keys[median], cases.features[keys[median][0]].ed_mm + disps[median],
+                            errors[median])
+    if plots:
+        files += _plots(out_dir, errors, rows[median], items[median][0], errors[median], state.get("history", []))
+    return {"summary": summary, **extras, "aggregate": agg, "by_parameter": by_param, "rows": rows,
+            "out_dir": str(out_dir), "files": files}
+
+
+def _by_parameter(rows: list) -> list:
+    out = []
+    for axis in PARAM_NAMES:
+        for v in sorted({r[axis] for r in rows}):
+            sel = [r for r in rows if r[axis] == v]
+            a = aggregate(sel, ("md_mm", "hd_mm", "dsc_1mm", "dsc_01mm"))
+            out.append({"parameter": axis, "value": v, "cases": len(sel),
+                        **{f"{k}_mean": a[k][0] for k in a}, **{f"{k}_sd": a[k][1] for k in a}})
+    return out
+
+
+def _write_rows(path: Path, rows: list) -> None:
+    if not rows:
+        path.write_text("")
+        return
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def _error_map_vtu(out_dir: Path, store, key, pred_mm, err) -> list:
+    from storage.meshfiles import write_mesh
+
+    from .data import open_reader
+
+    try:
+        mesh = open_reader(store).mesh(key[0])
+        write_mesh(out_dir / "error_map_median_case.vtu", mesh, pred_mm,
+                   point_data={"error_mm": err, "ed_mm": mesh.nodes}, units="mm")
+        return ["error_map_median_case.vtu"]
+    except Exception:  # an optional artefact; the metrics stand without it
+        return []
+
+
+def _plots(out_dir: Path, errors: list, row: dict, feat, err, history: list) -> list:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    files = []
+    allerr = np.concatenate(errors)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.hist(allerr, bins=60, color="tab:blue")
+    for t in (0.1, 1.0):
+        ax.axvline(t, color="k", ls="--", lw=0.8)
+    ax.set_xlabel("node-wise error (mm)")
+    ax.set_ylabel("nodes")
+    ax.set_title(f"error histogram, {len(errors)} cases (MD {allerr.mean():.3f} mm)")
+    fig.tight_layout()
+    fig.savefig(out_dir / "error_histogram.png", dpi=120)
+    plt.close(fig)
+    files.append("error_histogram.png")
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 4.5))
+    x = feat.ed_mm
+    for ax, (i, j, name) in zip(axes, ((0, 2, "x–z"), (1, 2, "y–z"))):
+        sc = ax.scatter(x[:, i], x[:, j], c=err, s=8, cmap="viridis")
+        ax.set_aspect("equal")
+        ax.set_title(f"{name} (mm)")
+    fig.colorbar(sc, ax=axes, label="error (mm)")
+    fig.suptitle(f"median case: shape {row['shape_id']} case {row['case']}, MD {row['md_mm']:.3f} mm, "
+                 f"HD {row['hd_mm']:.3f} mm")
+    fig.savefig(out_dir / "error_map.png", dpi=120)
+    plt.close(fig)
+    files.append("error_map.png")
+
+    if history:
+        ep = [h["epoch"] for h in history]
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+        a1.semilogy(ep, [h["train_loss"] for h in history], label="train loss")
+        a1.semilogy(ep, [h["train_sup"] for h in history], label="train supervised")
+        val = [h["val_loss"] if h["val_loss"] is not None else np.nan for h in history]
+        a1.semilogy(ep, val, label="validation (supervised)")
+        a1.set_xlabel("epoch")
+        a1.legend()
+        a2.plot(ep, [h["val_md_mm"] if h["val_md_mm"] is not None else np.nan for h in history])
+        a2.set_xlabel("epoch")
+        a2.set_ylabel("validation MD (mm)")
+        fig.tight_layout()
+        fig.savefig(out_dir / "training_curves.png", dpi=120)
+        plt.close(fig)
+        files.append("training_curves.png")
+    return files

@@ -1,0 +1,311 @@
+"""The training loop: plain PyTorch/PyG, runs without Ray (tests, GPU hosts without Ray); the Ray
+Train wrapper passes a `Dist` (rank, device, DDP wrapping, checkpoint report/restore) to distribute it."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+
+from ._malloc import tune_allocator
+from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
+from .config import TrainConfig, TrainerError
+from .data import DataBundle, build_training_data
+from .model import build_model, count_parameters, loss_terms
+
+METRIC_COLUMNS = ("epoch", "train_loss", "train_sup", "train_cycle", "val_loss", "val_md_mm", "lr", "epoch_s",
+                  "graphs_per_s")
+
+
+@dataclass
+class Dist:
+    """How the loop is distributed. The defaults are one process, no Ray."""
+
+    rank: int = 0
+    world: int = 1
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    wrap_model: Callable = lambda m: m  # e.g. ray.train.torch.prepare_model (DDP)
+    restore: Callable | None = None  # → checkpoint dict or None (e.g. from ray.train.get_checkpoint)
+    report: Callable | None = None  # (metrics, state or None) → None; state only on rank 0
+    log: Callable = print
+    write_local: bool = True  # rank 0 writes checkpoint.pt / metrics.csv into run_dir (its host sees it)
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+def _all_reduce(values: list, dist: Dist) -> list:
+    if dist.world <= 1:
+        return values
+    import torch.distributed as tdist
+
+    t = torch.tensor(values, dtype=torch.float64, device=dist.device)
+    tdist.all_reduce(t)
+    return t.tolist()
+
+
+def _move(batch, device):
+    """Ray's prepare_data_loader does not move a PyG Batch; the loop does it here."""
+    return batch.to(device, non_blocking=True)
+
+
+def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
+    from torch.utils.data import RandomSampler
+    from torch.utils.data.distributed import DistributedSampler
+    from torch_geometric.loader import DataLoader
+
+    if dist.world > 1:
+        train_sampler = DistributedSampler(bundle.train, num_replicas=dist.world, rank=dist.rank, shuffle=True,
+                                           seed=cfg.seed)
+        val_sampler = DistributedSampler(bundle.val, num_replicas=dist.world, rank=dist.rank, shuffle=False) \
+            if bundle.val else None
+    else:
+        gen = torch.Generator()
+        train_sampler = RandomSampler(bundle.train, generator=gen)
+        train_sampler.set_epoch = lambda epoch: gen.manual_seed(cfg.seed * 100003 + epoch)  # type: ignore[attr-defined]
+        val_sampler = None
+    pin = dist.device.type == "cuda"
+    train = DataLoader(bundle.train, batch_size=cfg.batch_size, sampler=train_sampler, pin_memory=pin)
+    val = DataLoader(bundle.val, batch_size=cfg.batch_size, sampler=val_sampler, shuffle=False, pin_memory=pin) \
+        if bundle.val else None
+    return train, train_sampler, val
+
+
+def _autocast(cfg: TrainConfig, device: torch.device):
+    return torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=bool(cfg.bf16 and device.type == "cuda"))
+
+
+def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float) -> tuple[float, float]:
+    """(val MSE in normalised units, mean node error mm) over the validation cases of all ranks."""
+    sq = ab = n = 0.0
+    if loader is not None:
+        model.eval()
+        with torch.no_grad(), _autocast(cfg, dist.device):
+            for batch in loader:
+                batch = _move(batch, dist.device)
+                d_unl, _ = model(batch, cycle=False)
+                diff = d_unl.float() - batch.y
+                sq += float(diff.pow(2).sum())
+                ab += float(diff.norm(dim=1).sum())
+                n += diff.shape[0]
+    sq, ab, n = _all_reduce([sq, ab, n], dist)
+    if n == 0:
+        return math.nan, math.nan
+    return sq / (3 * n), ab / n * disp_scale_mm
+
+
+def _write_csv(path: Path, history: list) -> None:
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=METRIC_COLUMNS)
+        w.writeheader()
+        for row in history:
+            w.writerow({k: row.get(k) for k in METRIC_COLUMNS})
+    os.replace(tmp, path)
+
+
+def _tensorboard(run_dir: Path):
+    for mod in ("torch.utils.tensorboard", "tensorboardX"):
+        try:
+            writer_cls = __import__(mod, fromlist=["SummaryWriter"]).SummaryWriter
+            return writer_cls(str(run_dir / "tb"))
+        except Exception:  # not installed (torch's needs the tensorboard package)
+            continue
+    return None
+
+
+def pick_resume_state(candidates: list) -> dict | None:
+    """The most advanced of the available checkpoints (Ray's and the run directory's)."""
+    states = [s for s in candidates if s is not None]
+    return max(states, key=lambda s: int(s.get("epoch", 0))) if states else None
+
+
+def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: Path) -> None:
+    saved = TrainConfig.from_dict(state["train_config"])
+    if saved.identity() != cfg.identity():
+        diff = [k for k in cfg.identity() if saved.identity()[k] != cfg.identity()[k]]
+        raise TrainerError(f"run directory {run_dir} holds a run with another {', '.join(diff)} "
+                           f"(config {saved.config_name}); use a new --run-dir")
+    if state.get("kind") != ("pca" if cfg.model.kind == "pca" else "gnn"):
+        raise TrainerError(f"run directory {run_dir} holds a {state.get('kind')} run; use a new --run-dir")
+    split_now = {k: [list(x) for x in v] for k, v in bundle.split.items()}
+    if state["split"] != split_now:
+        raise TrainerError(f"the store changed since the run in {run_dir} started (its split differs); "
+                           f"use a new --run-dir")
+
+
+def base_state(cfg: TrainConfig, bundle: DataBundle, kind: str) -> dict:
+    return {"kind": kind, "train_config": cfg.as_dict(), "normalisation": bundle.norm.as_dict(),
+            "fingerprint": bundle.fingerprint, "split": {k: [list(x) for x in v] for k, v in bundle.split.items()},
+            "labelled": sorted([list(k) for k in bundle.labelled])}
+
+
+def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
+        bundle: DataBundle | None = None) -> dict:
+    """Train (or resume) the configured model into run_dir; returns a summary dict.
+
+    run_dir gets checkpoint.pt (model, best model, optimiser, scheduler, epoch, normalisation,
+    config, split, history), metrics.csv, config.json and TensorBoard events when available."""
+    dist = dist or Dist()
+    run_dir = Path(run_dir)
+    tune_allocator()
+    if cfg.num_threads:
+        torch.set_num_threads(cfg.num_threads)
+    seed_everything(cfg.seed)
+    t0 = time.perf_counter()
+    bundle = bundle or build_training_data(cfg.store, cfg.split, cfg.seed, cfg.sr)
+    local = run_checkpoint_path(run_dir)
+    if dist.restore is not None:
+        state = dist.restore()
+    else:
+        state = load_checkpoint(local) if local.is_file() else None
+    if state is not None:
+        check_resumable(state, cfg, bundle, run_dir)
+    writes = dist.is_main and dist.write_local
+    if writes:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / "config.json").write_text(json.dumps(cfg.as_dict(), indent=2))
+    if cfg.model.kind == "pca":
+        return _fit_pca(cfg, run_dir, bundle, dist, t0)
+
+    model = build_model(cfg.model, bundle.norm.disp_to_coord)
+    n_params = count_parameters(model)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience)
+    start_epoch, best_val, best_epoch, bad_epochs, history = 0, math.inf, -1, 0, []
+    best_model = None
+    stopped = False
+    if state is not None:
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        start_epoch = int(state["epoch"])
+        best_val, best_epoch = float(state["best_val"]), int(state["best_epoch"])
+        bad_epochs, history = int(state["bad_epochs"]), list(state["history"])
+        best_model = state.get("best_model")
+        stopped = bool(state.get("stopped_early", False))
+        if dist.is_main:
+            dist.log(f"resuming {run_dir} from epoch {start_epoch} (best validation {best_val:.4g} at epoch {best_epoch})")
+    model.to(dist.device)
+    for s in opt.state.values():  # optimiser moments follow the model
+        for k, v in s.items():
+            if isinstance(v, torch.Tensor) and k != "step":
+                s[k] = v.to(dist.device)
+    wrapped = dist.wrap_model(model)
+    train_loader, sampler, val_loader = _loaders(bundle, cfg, dist)
+    writer = _tensorboard(run_dir) if writes else None
+    if writes:
+        _write_csv(run_dir / "metrics.csv", history)
+    if dist.is_main:
+        dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases "
+                 f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
+                 f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}")
+    epoch = start_epoch
+    for epoch in range(start_epoch, cfg.epochs):
+        if stopped:
+            break
+        t_ep = time.perf_counter()
+        sampler.set_epoch(epoch)
+        wrapped.train()
+        sums = [0.0, 0.0, 0.0, 0.0]  # loss·graphs, sup·graphs, cycle·graphs, graphs
+        for batch in train_loader:
+            batch = _move(batch, dist.device)
+            opt.zero_grad(set_to_none=True)
+            with _autocast(cfg, dist.device):
+                d_unl, d_ed = wrapped(batch)
+            terms = loss_terms(d_unl, d_ed, batch, cfg.model.lambda_cycle)
+            terms["loss"].backward()
+            opt.step()
+            g = batch.num_graphs
+            sums[0] += float(terms["loss"].detach()) * g
+            sums[1] += float(terms["sup"].detach()) * g
+            sums[2] += float(terms["cycle"].detach()) * g
+            sums[3] += g
+        sums = _all_reduce(sums, dist)
+        train_loss = sums[0] / max(sums[3], 1)
+        val_loss, val_md = _validate(model, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
+        monitor = val_loss if math.isfinite(val_loss) else train_loss
+        sched.step(monitor)
+        if monitor < best_val:
+            best_val, best_epoch, bad_epochs = monitor, epoch + 1, 0
+            best_model = cpu_state(model)
+        else:
+            bad_epochs += 1
+        stopped = bad_epochs >= cfg.patience
+        ep_s = time.perf_counter() - t_ep
+        row = {"epoch": epoch + 1, "train_loss": train_loss, "train_sup": sums[1] / max(sums[3], 1),
+               "train_cycle": sums[2] / max(sums[3], 1), "val_loss": val_loss, "val_md_mm": val_md,
+               "lr": opt.param_groups[0]["lr"], "epoch_s": ep_s, "graphs_per_s": sums[3] / ep_s}
+        history.append(row)
+        last = epoch + 1 == cfg.epochs or stopped
+        save = last or (epoch + 1) % max(cfg.checkpoint_every, 1) == 0
+        ckpt = None
+        if writes:
+            _write_csv(run_dir / "metrics.csv", history)
+        if dist.is_main:
+            if writer is not None:
+                for k, v in row.items():
+                    if k != "epoch" and v is not None and math.isfinite(v):
+                        writer.add_scalar(k, v, epoch + 1)
+                writer.flush()
+            dist.log(f"epoch {epoch + 1}/{cfg.epochs}: loss {train_loss:.4g} (sup {row['train_sup']:.4g}, "
+                     f"cycle {row['train_cycle']:.4g}), val {val_loss:.4g} / MD {val_md:.3f} mm, "
+                     f"lr {row['lr']:.2g}, {ep_s:.1f} s ({row['graphs_per_s']:.0f} graphs/s)"
+                     + (" — early stop" if stopped else ""))
+            if save:
+                ckpt = {**base_state(cfg, bundle, "gnn"), "model": cpu_state(model), "best_model": best_model,
+                        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1,
+                        "best_val": best_val, "best_epoch": best_epoch, "bad_epochs": bad_epochs,
+                        "history": history, "stopped_early": stopped, "finished": last,
+                        "n_parameters": n_params}
+                if writes:
+                    save_checkpoint(local, ckpt)
+        if dist.report is not None:
+            dist.report({k: (v if v is None or math.isfinite(v) else None) for k, v in row.items()},
+                        ckpt if dist.is_main else None)
+        if stopped:
+            break
+    if writer is not None:
+        writer.close()
+    done = len(history)
+    return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": done - start_epoch, "epoch": done,
+            "resumed_from": start_epoch, "best_epoch": best_epoch, "best_val_loss": best_val,
+            "best_val_md_mm": next((r["val_md_mm"] for r in history if r["epoch"] == best_epoch), None),
+            "stopped_early": stopped, "n_parameters": n_params, "train_cases": len(bundle.train),
+            "labelled_cases": len(bundle.labelled), "wall_s": time.perf_counter() - t0}
+
+
+def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0: float) -> dict:
+    from .pca import PCABaseline
+
+    c = bundle.cases
+    keys = sorted(bundle.labelled)
+    pca = PCABaseline.fit(c.features, keys, c.params, c.unloaded, bundle.norm, cfg.model.pca_components,
+                          cfg.model.pca_ridge)
+    if dist.is_main and dist.write_local:
+        state = {**base_state(cfg, bundle, "pca"), "model": pca.state_dict(), "best_model": pca.state_dict(),
+                 "epoch": 1, "history": [], "finished": True, "n_parameters": int(sum(v.numel() for v in pca.state_dict().values()))}
+        save_checkpoint(run_checkpoint_path(run_dir), state)
+        _write_csv(run_dir / "metrics.csv", [])
+        dist.log(f"pca: fitted on {len(keys)} labelled training cases "
+                 f"({pca.s['disp_comps'].shape[0]} displacement components)")
+    return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": 1, "epoch": 1, "resumed_from": 0,
+            "best_epoch": 1, "best_val_loss": None, "stopped_early": False,
+            "n_parameters": int(sum(v.numel() for v in pca.state_dict().values())),
+            "train_cases": len(bundle.train), "labelled_cases": len(bundle.labelled),
+            "wall_s": time.perf_counter() - t0}

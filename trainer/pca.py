@@ -1,0 +1,105 @@
+"""The PCA displacement baseline: each displacement field expressed in one smooth basis over the LV
+wall (ζ base–apex, τ transmural, θ circumferential), PCA of the training ones, PCA coefficients
+regressed (ridge, quadratic features) from the parameters and the ED shape's own PCA scores."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .data import MeshFeatures, Normalisation
+
+N_ZETA, N_TAU, N_FOURIER = 7, 3, 4  # Legendre degrees < 7 in ζ, < 3 in τ; Fourier modes ≤ 4 in θ
+FIT_RIDGE = 1e-4  # relative Tikhonov weight of the per-mesh least-squares fit
+
+
+def wall_basis(feat: MeshFeatures) -> np.ndarray:
+    """[n, 7·3·9] smooth basis over the wall: P_i(2ζ−1) · P_j(2τ−1) · {1, cos mθ, sin mθ}, θ about the
+    long axis through the mesh's (x, y) centroid. The same functions on every mesh, so coefficient
+    vectors of different meshes are comparable."""
+    from numpy.polynomial import legendre
+
+    xy = feat.ed_mm[:, :2] - feat.ed_mm[:, :2].mean(axis=0)
+    th = np.arctan2(xy[:, 1], xy[:, 0])
+    Z = legendre.legvander(2 * np.asarray(feat.zeta) - 1, N_ZETA - 1)
+    T = legendre.legvander(2 * np.asarray(feat.tau) - 1, N_TAU - 1)
+    F = np.concatenate([np.ones((len(th), 1))] + [np.stack([np.cos(m * th), np.sin(m * th)], axis=1)
+                                                  for m in range(1, N_FOURIER + 1)], axis=1)
+    return np.einsum("ni,nj,nk->nijk", Z, T, F).reshape(len(th), -1)
+
+
+def resampling(feat: MeshFeatures) -> tuple[np.ndarray, np.ndarray]:
+    """(Fit [p,n], Φ [n,p]): nodal field → basis coefficients (ridge least squares) and back."""
+    phi = wall_basis(feat)
+    G = phi.T @ phi
+    lam = FIT_RIDGE * np.trace(G) / G.shape[0]
+    return np.linalg.solve(G + lam * np.eye(G.shape[0]), phi.T), phi
+
+
+def _quadratic(f: np.ndarray) -> np.ndarray:
+    iu = np.triu_indices(f.shape[1])
+    return np.concatenate([f, (f[:, :, None] * f[:, None, :])[:, iu[0], iu[1]]], axis=1)
+
+
+class PCABaseline:
+    """Fitted state as plain arrays (saved as tensors in the checkpoint)."""
+
+    def __init__(self, state: dict):
+        self.s = {k: np.asarray(v.cpu().numpy() if isinstance(v, torch.Tensor) else v, dtype=np.float64)
+                  for k, v in state.items()}
+        self._cache: dict = {}
+
+    @classmethod
+    def fit(cls, features: dict, keys: list, params: dict, unloaded: dict, norm: Normalisation,
+            n_components: int = 16, ridge: float = 1e-2) -> "PCABaseline":
+        """features: shape → MeshFeatures; keys: labelled training cases; params/unloaded by key."""
+        shapes = sorted({k[0] for k in keys})
+        rs = {s: resampling(features[s]) for s in shapes}
+        desc = {s: (rs[s][0] @ norm.coords(features[s].ed_mm)).ravel() for s in shapes}
+        D = np.stack([(rs[k[0]][0] @ (unloaded[k] - features[k[0]].ed_mm)).ravel() for k in keys])
+        d_mean = D.mean(axis=0)
+        _, _, Vt = np.linalg.svd(D - d_mean, full_matrices=False)
+        m = max(1, min(n_components, len(keys) - 1, Vt.shape[0]))
+        comps = Vt[:m]
+        coef = (D - d_mean) @ comps.T
+        S = np.stack([desc[s] for s in shapes])
+        s_mean = S.mean(axis=0)
+        ms = max(0, min(8, len(shapes) - 1))
+        if ms:
+            _, sv, sVt = np.linalg.svd(S - s_mean, full_matrices=False)
+            s_comps = sVt[:ms]
+            s_sd = np.maximum(sv[:ms] / np.sqrt(max(len(shapes) - 1, 1)), 1e-9)
+        else:
+            s_comps, s_sd = np.zeros((0, S.shape[1])), np.zeros(0)
+        state = {"disp_mean": d_mean, "disp_comps": comps, "shape_mean": s_mean, "shape_comps": s_comps,
+                 "shape_sd": s_sd}
+        model = cls(state)
+        F = np.stack([model._features(desc[k[0]], norm.params(params[k])) for k in keys])
+        f_mean, f_sd = F.mean(axis=0), np.maximum(F.std(axis=0), 1e-9)
+        Fz = (F - f_mean) / f_sd
+        c_mean = coef.mean(axis=0)
+        A = Fz.T @ Fz + ridge * len(keys) * np.eye(Fz.shape[1])
+        W = np.linalg.solve(A, Fz.T @ (coef - c_mean))
+        model.s.update({"feat_mean": f_mean, "feat_sd": f_sd, "ridge_w": W, "ridge_b": c_mean})
+        return model
+
+    def _features(self, desc: np.ndarray, p_hat: np.ndarray) -> np.ndarray:
+        sc = (desc - self.s["shape_mean"]) @ self.s["shape_comps"].T / self.s["shape_sd"] if len(self.s["shape_sd"]) \
+            else np.zeros(0)
+        return _quadratic(np.concatenate([p_hat, sc])[None])[0]
+
+    def predict(self, feat: MeshFeatures, params, norm: Normalisation, cache_key=None) -> np.ndarray:
+        """Unloading displacement X − x_ED, mm, [n,3]."""
+        if cache_key is not None and cache_key in self._cache:
+            S, R = self._cache[cache_key]
+        else:
+            S, R = resampling(feat)
+            if cache_key is not None:
+                self._cache[cache_key] = (S, R)
+        desc = (S @ norm.coords(feat.ed_mm)).ravel()
+        f = (self._features(desc, norm.params(params)) - self.s["feat_mean"]) / self.s["feat_sd"]
+        coef = f @ self.s["ridge_w"] + self.s["ridge_b"]
+        D = (self.s["disp_mean"] + coef @ self.s["disp_comps"]).reshape(-1, 3)
+        return R @ D
+
+    def state_dict(self) -> dict:
+        return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in self.s.items()}

@@ -1,0 +1,160 @@
+"""A trained run as a predictor (network or PCA baseline), and unloading a user's ED mesh by the
+network (`gnn`) or by the network's guess refined with inverse FE (`hybrid`)."""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ._malloc import tune_allocator
+from .checkpoint import load_run
+from .config import TrainConfig, TrainerError
+from .data import MeshFeatures, Normalisation, case_graph, mesh_features
+
+
+class Predictor:
+    """Unloading displacement X − x_ED (mm) of ED meshes, from a run's best checkpoint."""
+
+    def __init__(self, state: dict, device: str | torch.device = "cpu", which: str = "best_model"):
+        tune_allocator()
+        self.state = state
+        self.cfg = TrainConfig.from_dict(state["train_config"])
+        self.norm = Normalisation.from_dict(state["normalisation"])
+        self.kind = state["kind"]
+        self.device = torch.device(device)
+        weights = state.get(which) or state.get("model")
+        if weights is None:
+            raise TrainerError("checkpoint holds no model weights")
+        if self.kind == "pca":
+            from .pca import PCABaseline
+
+            self.pca = PCABaseline(weights)
+            self.model = None
+        elif self.kind == "gnn":
+            from .model import build_model
+
+            self.model = build_model(self.cfg.model, self.norm.disp_to_coord)
+            try:
+                self.model.load_state_dict(weights)
+            except (RuntimeError, KeyError) as exc:
+                raise TrainerError(f"checkpoint weights do not fit the {self.cfg.config_name} model: "
+                                   f"{str(exc).splitlines()[0][:120]}") from None
+            self.model.to(self.device).eval()
+        else:
+            raise TrainerError(f"checkpoint of unknown kind {self.kind!r}")
+
+    @classmethod
+    def from_run(cls, run_dir, device: str = "cpu") -> "Predictor":
+        return cls(load_run(run_dir), device)
+
+    @property
+    def run_label(self) -> str:
+        return f"{self.cfg.config_name} ({self.kind})"
+
+    def sync(self) -> None:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+
+    @torch.no_grad()
+    def predict_many(self, items: list, batch_size: int = 32) -> list:
+        """items: [(MeshFeatures, params [4], cache key or None)] → [displacement mm [n,3]]."""
+        if self.kind == "pca":
+            return [self.pca.predict(f, p, self.norm, key) for f, p, key in items]
+        from torch_geometric.data import Batch
+
+        out = []
+        for i in range(0, len(items), batch_size):
+            chunk = items[i:i + batch_size]
+            batch = Batch.from_data_list([case_graph(f, p, self.norm) for f, p, _ in chunk]).to(self.device)
+            d, _ = self.model(batch, cycle=False)
+            d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
+            sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
+            out.extend(np.split(d, np.cumsum(sizes)[:-1]))
+        return out
+
+    def predict(self, feat: MeshFeatures, params, key=None) -> np.ndarray:
+        return self.predict_many([(feat, params, key)], 1)[0]
+
+    def time_ms_per_case(self, items: list, batch_size: int = 1, repeats: int = 1, warmup: int = 2) -> float:
+        """Mean wall time per case of the model alone at a batch size, ms (graph building and
+        host→device copies excluded; `warmup` untimed calls first)."""
+        if not items:
+            return float("nan")
+        if self.kind == "pca":
+            t = time.perf_counter()
+            for f, p, key in items:
+                self.pca.predict(f, p, self.norm, key)
+            return (time.perf_counter() - t) / len(items) * 1e3
+        from torch_geometric.data import Batch
+
+        graphs = [Batch.from_data_list([case_graph(f, p, self.norm) for f, p, _ in items[i:i + batch_size]]).to(self.device)
+                  for i in range(0, len(items), batch_size)]
+        with torch.no_grad():
+            for _ in range(warmup):
+                self.model(graphs[0], cycle=False)
+            self.sync()
+            t = time.perf_counter()
+            for _ in range(repeats):
+                for g in graphs:
+                    self.model(g, cycle=False)
+            self.sync()
+        return (time.perf_counter() - t) / (len(items) * repeats) * 1e3
+
+
+def _warnings(pred: Predictor, feat: MeshFeatures, params) -> list:
+    out = []
+    names = ("pressure", "stiffness", "endo angle", "epi angle")
+    for name, v, lo, hi in zip(names, params, pred.norm.param_lo, pred.norm.param_hi):
+        if not lo - 1e-9 <= v <= hi + 1e-9:
+            out.append(f"{name} {v:g} is outside the training grid [{lo:g}, {hi:g}]: the network extrapolates")
+    r = float(np.sqrt(((feat.ed_mm - feat.ed_mm.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    if not 0.5 <= r / pred.norm.scale_mm <= 2.0:
+        out.append(f"mesh size {r:.1f} mm (RMS radius) is far from the training meshes' {pred.norm.scale_mm:.1f} mm: "
+                   f"check --units")
+    return out
+
+
+def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: str = "accurate",
+                        base: str = "sliding", tol_mm: float | None = None, device: str = "cpu") -> dict:
+    """Unload an ED TetMesh (mm) at CaseParameters `params`.
+
+    gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
+    (falls back to X0 = x_ED when the guess folds an element). Returns {"unloaded_nodes", "network_ms",
+    "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
+    if method not in ("gnn", "hybrid"):
+        raise TrainerError(f"unknown network method {method!r}")
+    pred = Predictor.from_run(Path(run_dir), device)
+    values = np.array([params.pressure_mmhg, params.stiffness_pa, params.helix_endo_deg, params.helix_epi_deg])
+    feat = mesh_features(mesh)
+    t = time.perf_counter()
+    disp = pred.predict(feat, values)
+    pred.sync()
+    first_ms = (time.perf_counter() - t) * 1e3
+    net_ms = pred.time_ms_per_case([(feat, values, None)], 1, repeats=5, warmup=3)  # the model alone, warm
+    guess = mesh.nodes + disp
+    out = {"network_ms": net_ms, "first_call_ms": first_ms, "warnings": _warnings(pred, feat, values),
+           "run": pred.run_label}
+    if method == "gnn":
+        from solver.mesh import MeshError, check_geometry
+
+        try:
+            check_geometry(guess, mesh.tets)
+        except MeshError as exc:
+            out["warnings"].append(f"the predicted unloaded mesh is not valid ({exc}); use --method hybrid")
+        out["unloaded_nodes"] = guess
+        return out
+    from solver.lv import inverse_solve
+    from solver.mesh import MeshError, check_geometry
+
+    fallback = False
+    try:
+        check_geometry(guess, mesh.tets)
+    except MeshError as exc:
+        out["warnings"].append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
+        fallback = True
+    result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess, tol_mm=tol_mm)
+    out.update({"unloaded_nodes": result.unloaded_nodes, "inverse": result, "fallback": fallback,
+                "guess_error_mm": float(np.linalg.norm(guess - result.unloaded_nodes, axis=1).max())})
+    return out

@@ -1,0 +1,121 @@
+"""Ray Train wrapper around the plain loop: TorchTrainer (DDP; NCCL on GPUs, gloo on CPU workers),
+rank-0 checkpoints reported to Ray storage in the run directory, resume and worker-failure restarts."""
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+from .checkpoint import CHECKPOINT_NAME, load_checkpoint, run_checkpoint_path, save_checkpoint
+from .config import TrainConfig, TrainerError
+from .loop import Dist, _write_csv, fit, pick_resume_state
+
+RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
+
+
+def _train_worker(config: dict) -> None:
+    """Runs in every Ray Train worker."""
+    import ray
+    import ray.train
+    import ray.train.torch
+    import torch
+
+    ctx = ray.train.get_context()
+    rank, world = ctx.get_world_rank(), ctx.get_world_size()
+    device = ray.train.torch.get_device()
+    cfg = TrainConfig.from_dict(config["train_config"])
+    if device.type == "cpu" and cfg.num_threads == 0:
+        torch.set_num_threads(max(1, int(config.get("threads_per_worker", 1))))
+    run_dir = Path(config["run_dir"])
+    same_host = ray.util.get_node_ip_address() == config.get("driver_ip")
+
+    def restore():
+        candidates = []
+        ckpt = ray.train.get_checkpoint()
+        if ckpt is not None:
+            with ckpt.as_directory() as d:
+                candidates.append(load_checkpoint(Path(d) / CHECKPOINT_NAME))
+        if config.get("driver_state") is not None:  # the run directory's own checkpoint, via the object store
+            path = Path(tempfile.mkdtemp()) / CHECKPOINT_NAME
+            path.write_bytes(ray.get(config["driver_state"]))
+            candidates.append(load_checkpoint(path))
+            shutil.rmtree(path.parent, ignore_errors=True)
+        return pick_resume_state(candidates)
+
+    def report(metrics: dict, state: dict | None) -> None:
+        if state is None:
+            ray.train.report(metrics)
+            return
+        with tempfile.TemporaryDirectory() as tmp:
+            save_checkpoint(Path(tmp) / CHECKPOINT_NAME, state)
+            ray.train.report(metrics, checkpoint=ray.train.Checkpoint.from_directory(tmp))
+
+    def log(line: str) -> None:  # once (Ray Train's patched print would also echo it through logging)
+        sys.__stdout__.write(line + "\n")
+        sys.__stdout__.flush()
+
+    try:  # no INFO line per ray.train.report (Ray Train v2 names that logger after its file)
+        from ray.train.v2._internal.execution import context as _ray_ctx
+
+        logging.getLogger(_ray_ctx.__file__).setLevel(logging.WARNING)
+    except Exception:
+        pass
+
+    dist = Dist(rank=rank, world=world, device=device, wrap_model=ray.train.torch.prepare_model, restore=restore,
+                report=report, log=log, write_local=same_host)
+    fit(cfg, run_dir, dist)
+
+
+def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, cpu_workers: int = 2,
+                   max_failures: int = 2, threads_per_worker: int = 1) -> dict:
+    """Train on `gpus` GPU workers (NCCL), or `cpu_workers` CPU workers (gloo) when gpus == 0.
+    Ray must be initialised by the caller. Re-running with the same run_dir resumes from the latest
+    checkpoint (Ray's storage under run_dir/ray, or run_dir/checkpoint.pt, whichever is further).
+    Returns the loop's summary (from the final checkpoint)."""
+    import ray
+    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train.torch import TorchConfig, TorchTrainer
+
+    if gpus < 0 or cpu_workers < 1:
+        raise TrainerError("--gpus must be ≥ 0 and the CPU worker count ≥ 1")
+    run_dir = Path(run_dir).resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    local = run_checkpoint_path(run_dir)
+    driver_state = ray.put(local.read_bytes()) if local.is_file() else None
+    if local.is_file():
+        load_checkpoint(local)  # a damaged file is an input error, before any worker starts
+    use_gpu = gpus > 0
+    scaling = ScalingConfig(num_workers=gpus if use_gpu else cpu_workers, use_gpu=use_gpu,
+                            resources_per_worker=None if use_gpu else {"CPU": threads_per_worker})
+    trainer = TorchTrainer(
+        _train_worker,
+        train_loop_config={"train_config": cfg.as_dict(), "run_dir": str(run_dir), "driver_state": driver_state,
+                           "driver_ip": ray.util.get_node_ip_address(), "threads_per_worker": threads_per_worker},
+        torch_config=TorchConfig(backend="nccl" if use_gpu else "gloo"),
+        scaling_config=scaling,
+        run_config=RunConfig(name=RAY_RUN_NAME, storage_path=str(run_dir),
+                             failure_config=FailureConfig(max_failures=max_failures),
+                             checkpoint_config=CheckpointConfig(num_to_keep=2)),
+    )
+    result = trainer.fit()
+    if result.error is not None:  # pragma: no cover - surfaced by fit() raising in practice
+        raise result.error
+    final = None
+    if result.checkpoint is not None:
+        with result.checkpoint.as_directory() as d:
+            final = load_checkpoint(Path(d) / CHECKPOINT_NAME)
+    final = pick_resume_state([final, load_checkpoint(local) if local.is_file() else None])
+    if final is None:
+        raise TrainerError("Ray Train finished without a checkpoint")
+    save_checkpoint(local, {k: v for k, v in final.items() if k not in ("format", "version")})
+    _write_csv(run_dir / "metrics.csv", final.get("history", []))
+    hist = final.get("history", [])
+    best = next((r for r in hist if r["epoch"] == final.get("best_epoch")), {})
+    return {"config": cfg.config_name, "run_dir": str(run_dir), "epoch": int(final["epoch"]),
+            "best_epoch": final.get("best_epoch"), "best_val_loss": final.get("best_val"),
+            "best_val_md_mm": best.get("val_md_mm"), "stopped_early": final.get("stopped_early"),
+            "n_parameters": final.get("n_parameters"), "workers": scaling.num_workers,
+            "backend": "nccl" if use_gpu else "gloo", "ray_storage": str(run_dir / RAY_RUN_NAME)}
