@@ -361,12 +361,6 @@ def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity
                f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
 
 
-def _train_config_help() -> str:
-    from trainer.config import CONFIG_HELP
-
-    return CONFIG_HELP
-
-
 @app.command()
 def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs (heartctl generate)."),
           run_dir: Path = typer.Option(..., "--run-dir", help="Run directory: checkpoint.pt, metrics.csv, Ray storage; "
@@ -387,7 +381,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           lr: float = typer.Option(1e-3, "--lr", help="AdamW learning rate."),
           patience: int = typer.Option(50, "--patience", help="Early stopping: epochs without a better validation loss."),
           bf16: bool = typer.Option(False, "--bf16", help="bf16 autocast (GPU only)."),
-          as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON.")):
+          as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON (the last line of stdout).")):
     """Train HeartUnloadNet (or an ablation / baseline) on a store; Ray Train DDP, or --no-ray."""
     from storage.store import StoreError, inspect_store
     from trainer.checkpoint import load_checkpoint, run_checkpoint_path
@@ -405,6 +399,11 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         if device not in (None, "cpu", "cuda"):
             raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
         parse_split(split)
+        from storage.store import is_url
+
+        if not is_url(store):  # Ray Train workers run in their own working directory
+            store = str(Path(store).resolve())
+        run_dir = run_dir.resolve()
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed,
                           epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size, lr=lr, patience=patience,
                           bf16=bf16)
@@ -437,7 +436,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
 
         dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         try:
-            summary = fit(cfg, run_dir, Dist(device=dev))
+            summary = fit(cfg, run_dir, Dist(device=dev, log=lambda line: typer.echo(line, err=True)))
         except _trainer_errors() as exc:
             fail(str(exc))
         except KeyboardInterrupt:

@@ -20,12 +20,20 @@ $HEARTCTL generate --local --store "$OUT/local.zarr"
 $HEARTCTL status --store "$OUT/local.zarr"
 
 echo
-echo "== 4. Unload one ED mesh by inverse FE (8 mmHg, C = 150 Pa, helix +60/−60°)"
+echo "== 4. Train HeartUnloadNet on that store (Ray Train, two CPU workers, a few epochs) and evaluate it"
+rm -rf "$OUT/run_local"
+$HEARTCTL train --local --store "$OUT/local.zarr" --run-dir "$OUT/run_local"
+$HEARTCTL evaluate --run "$OUT/run_local" --store "$OUT/local.zarr"
+
+echo
+echo "== 5. Unload one ED mesh: by the network, then by inverse FE (8 mmHg, C = 150 Pa, helix +60/−60°)"
+$HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
+    --method gnn --run "$OUT/run_local" -o "$OUT/shape0_unloaded_gnn.vtu"
 $HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --method fe --fidelity fast -o "$OUT/shape0_unloaded.vtu"
 
 echo
-echo "== 5. Check: inflate the unloaded mesh again; it must land on the ED mesh"
+echo "== 6. Check: inflate the FE-unloaded mesh again; it must land on the ED mesh"
 $HEARTCTL solve "$OUT/shape0_unloaded.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --fidelity fast -o "$OUT/shape0_reloaded.vtu"
 .venv/bin/python - "$OUT/shape0_ed.vtu" "$OUT/shape0_reloaded.vtu" <<'PY'

@@ -81,6 +81,12 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
 
     if gpus < 0 or cpu_workers < 1:
         raise TrainerError("--gpus must be ≥ 0 and the CPU worker count ≥ 1")
+    from dataclasses import replace
+
+    from storage.store import is_url
+
+    if not is_url(cfg.store):  # workers run in their own working directory
+        cfg = replace(cfg, store=str(Path(cfg.store).resolve()))
     run_dir = Path(run_dir).resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
     local = run_checkpoint_path(run_dir)
