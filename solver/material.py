@@ -30,10 +30,6 @@ def green_lagrange(F: np.ndarray) -> np.ndarray:
     return 0.5 * (np.einsum("...kI,...kJ->...IJ", F, F) - np.eye(3))
 
 
-def to_fibre_frame(E: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """E_local = R^T E R with R = frame[..., :, (f, s, n)] (columns are f, s, n)."""
-    return np.einsum("...Ia,...IJ,...Jb->...ab", frame, E, frame)
-
 
 def guccione_energy(E_local: np.ndarray, params: FungParameters) -> np.ndarray:
     """Strain energy density W in Pa at each point, E given in the fibre frame."""
@@ -59,30 +55,3 @@ def guccione_stress_tangent(E_local: np.ndarray, params: FungParameters, with_ta
     D = B[:, :, None, None] * sym_identity + 2.0 * np.einsum("...ab,...cd->...abcd", BE, BE)
     D = scale[..., None, None, None, None] * D
     return S, D
-
-
-def rotate_to_global(S_local: np.ndarray, D_local: np.ndarray | None, frame: np.ndarray):
-    """Rotate S and the fourth-order tangent from the fibre frame to the global frame."""
-    S = np.einsum("...Ia,...ab,...Jb->...IJ", frame, S_local, frame)
-    if D_local is None:
-        return S, None
-    D = np.einsum("...Ia,...Jb,...abcd,...Kc,...Ld->...IJKL", frame, frame, D_local, frame, frame, optimize=True)
-    return S, D
-
-
-def first_elasticity(F: np.ndarray, S: np.ndarray, D: np.ndarray) -> np.ndarray:
-    """A_iIjJ = dP_iI/dF_jJ for P = F S:  δ_ij S_IJ + F_iK D_KIMJ F_jM."""
-    A = np.einsum("...KIMJ,...iK,...jM->...iIjJ", D, F, F, optimize=True)
-    A += np.einsum("ij,...IJ->...iIjJ", np.eye(3), S)
-    return A
-
-
-def cofactor_terms(F: np.ndarray):
-    """J, cof F = J F^{-T}, and d(cof F)_iI / dF_jJ = J (F^{-1}_Ii F^{-1}_Jj - F^{-1}_Ij F^{-1}_Ji)."""
-    J = np.linalg.det(F)
-    Finv = np.linalg.inv(F)
-    cof = J[..., None, None] * np.swapaxes(Finv, -1, -2)
-    dcof = J[..., None, None, None, None] * (
-        np.einsum("...Ii,...Jj->...iIjJ", Finv, Finv) - np.einsum("...Ij,...Ji->...iIjJ", Finv, Finv)
-    )
-    return J, cof, dcof
