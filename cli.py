@@ -31,6 +31,7 @@ class Base(str, Enum):
     sliding = "sliding"
     clamped = "clamped"
     spring = "spring"
+    heartfem = "heartfem"
 
 
 class UnloadMethod(str, Enum):
@@ -49,6 +50,13 @@ def fail(message: str, code: int = 2) -> None:
     """One line on stderr, then exit."""
     typer.echo(f"heartctl: error: {message}", err=True)
     raise typer.Exit(code)
+
+
+def _check_fibres(rule: str) -> None:
+    from solver.fibres import FIBRE_RULES
+
+    if rule not in FIBRE_RULES:
+        raise ValueError(f"--fibres must be {' or '.join(FIBRE_RULES)}, got {rule!r}")
 
 
 def _input_errors():
@@ -76,7 +84,8 @@ StiffnessOpt = typer.Option(..., "--stiffness", help="Guccione stiffness C, Pa (
 EndoOpt = typer.Option(60.0, "--endo", help="Endocardial helix angle, degrees (|θ| ≤ 90).")
 EpiOpt = typer.Option(-60.0, "--epi", help="Epicardial helix angle, degrees (the paper's −60…−70).")
 FidelityOpt = typer.Option(FidelityName.accurate, "--fidelity", help="Solver preset.")
-BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed), clamped, or spring (sliding + epicardial normal spring, as the original paper's pipeline).")
+BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed), clamped, spring (sliding + epicardial normal spring), or heartfem (spring, rigid motions removed over the wall: the original paper's pipeline).")
+FibresOpt = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (ours) | heartfem (the original pipeline's distance rule).")
 UnitsOpt = typer.Option(Units.mm, "--units", help="Length unit of the input mesh; the output uses it too.")
 
 
@@ -115,7 +124,8 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
 def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (stress-free) mesh."),
           pressure: float = PressureOpt, stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
           out: Path = typer.Option(..., "-o", "--out", help="Output: deformed mesh with `displacement`."),
-          fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt):
+          fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
+          fibres: str = FibresOpt):
     """Forward inflation of an unloaded mesh to the ED pressure."""
     from solver.forward import SolveError
     from solver.lv import forward_solve
@@ -123,12 +133,13 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
 
     try:
         params = _params(pressure, stiffness, endo, epi)
+        _check_fibres(fibres)
         _check_output(out)
         lv = read_mesh(mesh_path, units.value)
     except _input_errors() as exc:
         fail(str(exc))
     try:
-        result = forward_solve(lv, params, fidelity.value, base.value)
+        result = forward_solve(lv, params, fidelity.value, base.value, fibres=fibres)
     except SolveError as exc:
         fail(f"forward solve did not converge: {exc}", code=1)
     write_mesh(out, lv, result.loaded_nodes, point_data={"displacement": result.displacement},
@@ -148,7 +159,8 @@ def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diast
                                                "gnn: the trained network; hybrid: network guess refined by inverse FE."),
            fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
            tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4)."),
-           run: Path = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid).")):
+           run: Path = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid)."),
+           fibres: str = FibresOpt):
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
     from solver.forward import SolveError
     from solver.lv import inverse_solve
@@ -159,6 +171,7 @@ def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diast
         _check_output(out)
         if tol_mm is not None and not tol_mm > 0:
             raise ValueError(f"--tol-mm must be > 0, got {tol_mm}")
+        _check_fibres(fibres)
         if (run is None) != (method is UnloadMethod.fe):
             raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
         lv = read_mesh(mesh_path, units.value)
@@ -167,7 +180,7 @@ def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diast
     if method is not UnloadMethod.fe:
         return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm, units.value)
     try:
-        result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm)
+        result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm, fibres=fibres)
     except SolveError as exc:
         fail(f"inverse solve did not converge: {exc}", code=1)
     shift = lv.nodes - result.unloaded_nodes
@@ -280,18 +293,24 @@ def import_l2u_cmd(folder: Path = typer.Argument(..., metavar="DIR", help="Folde
 @bench_app.command("l2u")
 def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by import-l2u."),
               fidelity: FidelityName = FidelityOpt,
-              base: Base = typer.Option(Base.spring, "--base", help="spring follows their pipeline (base z + epicardial spring)."),
+              base: Base = typer.Option(Base.heartfem, "--base", help="heartfem (default) follows their pipeline: base z fixed, epicardial spring, rigid motions removed by ∫u = 0 and ∫X×u = 0; spring: the same with our base gauge."),
               limit: int = typer.Option(None, "--limit", help="Check only the first N pairs."),
-              stiffness_factor: float = typer.Option(1.0, "--stiffness-factor", help="Multiply their C (2: their law read as W = C (e^Q − 1))."),
+              stiffness_factor: float = typer.Option(2.0, "--stiffness-factor", help="Multiply their C: 2 (default) because heartFEM writes W = C (e^Q − 1), we W = C/2 (e^Q − 1); 1 takes C as named."),
+              fibres: str = typer.Option("heartfem", "--fibres", help="Fibre rule: heartfem (theirs, default) | laplace (ours)."),
+              quad_degree: int = typer.Option(4, "--quad-degree", help="Cell quadrature degree (heartFEM: 4; 0 = the preset's own)."),
               as_json: bool = typer.Option(False, "--json")):
-    """Forward-solve their unloaded meshes with their parameters; mismatch to their ED meshes."""
+    """Forward-solve their unloaded meshes with their parameters; mismatch to their ED meshes.
+    The defaults follow their pipeline (spring base, their C convention and fibre rule, degree 4)."""
     from orchestrator.l2u_check import run_l2u_check
     from storage.store import StoreError
 
     try:
         if not (stiffness_factor > 0):
             raise ValueError(f"--stiffness-factor must be > 0, got {stiffness_factor}")
-        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor)
+        _check_fibres(fibres)
+        if not 0 <= quad_degree <= 6:
+            raise ValueError(f"--quad-degree must be 1–6 (0: the preset's), got {quad_degree}")
+        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor, fibres, quad_degree or None)
     except (StoreError, ValueError) as exc:
         fail(str(exc))
     if as_json:
@@ -299,7 +318,7 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
         return
     o = result["overall"]
     typer.echo(f"{result['solved']}/{result['cases']} pairs solved ({fidelity.value}, base {base.value}, "
-               f"C × {stiffness_factor:g})")
+               f"C × {stiffness_factor:g}, {fibres} fibres, quadrature degree {result['quad_degree']})")
     for r in result["rows"]:
         if r["ok"]:
             typer.echo(f"  shape {r['shape']} case {r['case']}: P={r['pressure_mmhg']:g} C={r['stiffness_pa']:g} "
@@ -366,7 +385,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           run_dir: Path = typer.Option(..., "--run-dir", help="Run directory: checkpoint.pt, metrics.csv, Ray storage; "
                                                                "reusing it resumes the run."),
           gpus: int = typer.Option(0, "--gpus", help="GPU workers (DDP over NCCL); 0 = CPU workers with gloo."),
-          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | pca."),
+          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | R1 | pca."),
           epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
           batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
           sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),
@@ -573,6 +592,68 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
         typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} ms per batch)")
     typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "
                f"{r['train_graphs_per_s']:.1f} graphs/s")
+
+
+@bench_app.command("ablation")
+def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs."),
+                       root: Path = typer.Option(..., "--root", help="Folder for one run directory per configuration."),
+                       configs: str = typer.Option("paper,A1,A4,pca", "--configs", help="Comma-separated configurations."),
+                       epochs: int = typer.Option(40, "--epochs", help="Max epochs per configuration."),
+                       batch_size: int = typer.Option(8, "--batch-size", help="Graphs per batch."),
+                       sr: float = typer.Option(1.0, "--sr", help="Supervision ratio for every configuration."),
+                       split: str = typer.Option("shape", "--split", help="shape | lovo:P=10 | source."),
+                       seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset and training."),
+                       device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
+                       as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
+    """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
+    from storage.store import inspect_store
+    from trainer.ablation import TABLE_METRICS, beats, run_ablation
+    from trainer.config import PAPER, TrainConfig, TrainerError
+    from trainer.splits import parse_split
+
+    names = [c.strip() for c in configs.split(",") if c.strip()]
+    try:
+        parse_split(split)
+        if device not in ("cpu", "cuda"):
+            raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+        if device == "cuda":
+            import torch
+
+            if not torch.cuda.is_available():
+                raise TrainerError("--device cuda: no CUDA device is available here")
+        if inspect_store(store) is None:
+            raise TrainerError(f"no heartctl store at {store}")
+        if root.exists() and not root.is_dir():
+            raise TrainerError(f"--root {root} is a file")
+        base = TrainConfig(store=store, model=PAPER, split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size)
+        result = run_ablation(base, names, root, device, log=lambda line: typer.echo(line, err=True))
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    rows = result["rows"]
+    table = Table(title=f"test split of {store} (split {split}, SR {sr:g}, ≤ {epochs} epochs, seed {seed}; "
+                        f"{rows[0]['cases']} cases)")
+    for col in ("config", *[label for _, label, _ in TABLE_METRICS], "ms/case", "epochs"):
+        table.add_column(col, justify="left" if col == "config" else "right")
+    for r in rows:
+        cells = [f"[bold]{r[k]:.3f}[/bold]" if result["best"][k] == r["config"] else f"{r[k]:.3f}"
+                 for k, _, _ in TABLE_METRICS]
+        table.add_row(r["config"], *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
+    con = Console(width=160)
+    con.print(table)
+    for name, rivals in (("paper", ["A4", "pca"]), ("paper", ["A1"]), ("R1", ["A1"])):
+        won = beats(rows, name, rivals)
+        present = [o for o in rivals if o in {r["config"] for r in rows}]
+        if won and present:
+            wins = [label for k, label, _ in TABLE_METRICS if won[k]]
+            con.print(f"{name} vs {', '.join(present)}: better on {len(wins)}/{len(TABLE_METRICS)} metrics"
+                      + (f" ({', '.join(wins)})" if wins else ""))
+    con.print(f"wrote ablation.csv and ablation.json to {root}")
 
 
 # --- end of training and evaluation (issue 4) ---

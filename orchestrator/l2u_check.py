@@ -5,19 +5,21 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
+from dataclasses import replace
 
 import numpy as np
 
+from solver.fidelity import Fidelity, get_fidelity
 from solver.forward import SolveError
 from solver.lv import forward_solve
 from solver.parameters import CaseParameters
 from storage.store import PARAM_NAMES, PairReader
 
 
-def check_case(reader: PairReader, shape_id: int, k: int, fidelity: str, base: str,
-               stiffness_factor: float = 1.0) -> dict:
-    """One pair; `stiffness_factor` multiplies their C (2 tests the reading W = C (e^Q − 1) of
-    their law against our W = C/2 (e^Q − 1))."""
+def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | str, base: str,
+               stiffness_factor: float = 1.0, fibres: str = "laplace") -> dict:
+    """One pair; `stiffness_factor` multiplies their C (their heartFEM code writes W = C (e^Q − 1),
+    ours W = C/2 (e^Q − 1): 2 makes the laws equal); `fibres` is the fibre rule."""
     case = reader.case(shape_id, k)
     mesh = reader.mesh(shape_id)
     unloaded = case.unloaded.astype(float)
@@ -30,7 +32,7 @@ def check_case(reader: PairReader, shape_id: int, k: int, fidelity: str, base: s
     row["loading_mean_mm"] = float(loading.mean())
     t0 = time.perf_counter()
     try:
-        ours = forward_solve(mesh.with_nodes(unloaded), params, fidelity, base).loaded_nodes
+        ours = forward_solve(mesh.with_nodes(unloaded), params, fidelity, base, fibres=fibres).loaded_nodes
     except SolveError as exc:
         row.update(ok=False, reason=str(exc), wall_s=time.perf_counter() - t0)
         return row
@@ -57,10 +59,15 @@ def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None,
-                  stiffness_factor: float = 1.0) -> dict:
+                  stiffness_factor: float = 1.0, fibres: str = "laplace", quad_degree: int | None = None) -> dict:
+    """`quad_degree` overrides the preset's cell quadrature (heartFEM integrates, and places its
+    fibres, at degree 4)."""
     reader = PairReader(location)
     keys = reader.done_cases()[:limit] if limit else reader.done_cases()
-    rows = [check_case(reader, s, k, fidelity, base, stiffness_factor) for s, k in keys]
+    fid = get_fidelity(fidelity)
+    if quad_degree is not None:
+        fid = replace(fid, quad_degree=quad_degree)
+    rows = [check_case(reader, s, k, fid, base, stiffness_factor, fibres) for s, k in keys]
     ok = [r for r in rows if r["ok"]]
     by_param = {}
     for name in PARAM_NAMES:
@@ -68,7 +75,8 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
         for r in ok:
             groups[r[name]].append(r)
         by_param[name] = {v: _summary(g) for v, g in sorted(groups.items())}
-    return {"fidelity": fidelity, "base": base, "stiffness_factor": stiffness_factor, "cases": len(rows), "solved": len(ok),
+    return {"fidelity": fidelity, "base": base, "stiffness_factor": stiffness_factor, "fibres": fibres,
+            "quad_degree": fid.quad_degree, "cases": len(rows), "solved": len(ok),
             "failed": [r for r in rows if not r["ok"]], "overall": _summary(ok), "by_parameter": by_param,
             "rows": rows}
 

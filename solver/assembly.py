@@ -20,12 +20,15 @@ _SYM = 0.5 * (np.einsum("ac,bd->abcd", np.eye(3), np.eye(3)) + np.einsum("ad,bc-
 class Supports:
     """Displacement supports: on the dofs of `facets`, the listed components are fixed at zero.
     With `gauge`, the in-plane rigid motions left free (x, y translation, rotation about z) are
-    removed by three Lagrange multipliers on the mean motion of those dofs. An optional normal
-    spring on `spring_facets` (reference normal N) resists wall motion along N."""
+    removed by three Lagrange multipliers on the mean motion of those dofs. `gauge_region="volume"`
+    instead imposes, as heartFEM does, ∫u_x = ∫u_y = 0 and ∫X × u = 0 (all three components, five
+    multipliers) over the whole wall. An optional normal spring on `spring_facets` (reference
+    normal N) resists wall motion along N."""
 
     facets: np.ndarray
     components: tuple[int, ...]
     gauge: bool = False
+    gauge_region: str = "base"  # base | volume
     spring_facets: np.ndarray | None = None  # boundary triangles with a normal spring (Robin condition)
     spring_pa_per_mm: float = 0.0  # traction −k (u·N) N on them, k in Pa/mm
 
@@ -85,7 +88,9 @@ class MechanicsProblem:
         fixed = np.zeros(self.n_u + self.n_p, bool)
         for comp in supports.components:
             fixed[3 * support_dofs + comp] = True
-        self.n_gauge = 3 if supports.gauge else 0
+        if supports.gauge_region not in ("base", "volume"):
+            raise ValueError(f"unknown gauge region {supports.gauge_region!r}; choose base or volume")
+        self.n_gauge = (5 if supports.gauge_region == "volume" else 3) if supports.gauge else 0
         n_full = self.n_u + self.n_p + self.n_gauge
         fixed = np.concatenate([fixed, np.zeros(self.n_gauge, bool)])
         self.free = np.flatnonzero(~fixed)
@@ -136,6 +141,8 @@ class MechanicsProblem:
         return K.reshape(len(sdofs), self._spring_udofs.shape[1], -1)
 
     def _gauge_rows(self) -> np.ndarray:
+        if self.supports.gauge_region == "volume":
+            return self._volume_gauge_rows()
         dofs = np.unique(facet_dofs(self.dofmap, np.asarray(self.supports.facets)))
         X = self.dofmap.points[dofs]
         c = X.mean(axis=0)
@@ -145,6 +152,30 @@ class MechanicsProblem:
         vals = w * np.concatenate([np.ones(dofs.size), np.ones(dofs.size), X[:, 0] - c[0], -(X[:, 1] - c[1])])
         self._gauge_cols = cols
         self._gauge_r = rows
+        return vals
+
+    def _volume_gauge_rows(self) -> np.ndarray:
+        """Rows of ∫u_x, ∫u_y, ∫(X×u)_z, ∫(X×u)_x, ∫(X×u)_y over the wall (moments about the
+        coordinate origin, as heartFEM takes them), scaled by the wall volume (and a lever arm):
+        w_i = ∫φ_i dV and m_i = ∫X φ_i dV per displacement dof, from the cell quadrature."""
+        cq, dm = self.cq, self.dofmap
+        xq = np.einsum("eai,aq->eqi", self.nodes[self.tets], cq.lam)
+        n = dm.n_dofs
+        w = np.bincount(dm.cell_dofs.ravel(), weights=np.einsum("bq,eq->eb", cq.values, cq.dV).ravel(), minlength=n)
+        m = np.stack([np.bincount(dm.cell_dofs.ravel(), weights=np.einsum("bq,eq,eq->eb", cq.values, cq.dV,
+                                                                            xq[..., i]).ravel(), minlength=n)
+                      for i in range(3)], axis=1)
+        dofs = np.arange(n)
+        ux, uy, uz = 3 * dofs, 3 * dofs + 1, 3 * dofs + 2
+        parts = [(0, ux, w), (1, uy, w),
+                 (2, uy, m[:, 0]), (2, ux, -m[:, 1]),  # X u_y − Y u_x
+                 (3, uz, m[:, 1]), (3, uy, -m[:, 2]),  # Y u_z − Z u_y
+                 (4, ux, m[:, 2]), (4, uz, -m[:, 0])]  # Z u_x − X u_z
+        self._gauge_r = np.concatenate([np.full(n, r) for r, _, _ in parts])
+        self._gauge_cols = np.concatenate([c for _, c, _ in parts])
+        total = w.sum()
+        lever = float(np.sqrt((m ** 2).sum() / max((w ** 2).sum(), 1e-300)))  # ~ wall radius, mm
+        vals = np.concatenate([v / total for _, _, v in parts[:2]] + [v / (total * lever) for _, _, v in parts[2:]])
         return vals
 
     # --- sparsity ----------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import numpy as np
 
 from .assembly import MechanicsProblem, Supports
 from .elements import quadrature_barycentric
-from .fibres import fibre_frames, transmural_coordinate
+from .fibres import FIBRE_RULES, rule_frames, transmural_coordinate
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
 from .linear import SparseSolver
@@ -18,34 +18,41 @@ from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
 from .parameters import CaseParameters
 
-BASE_CONDITIONS = ("sliding", "clamped", "spring")
+BASE_CONDITIONS = ("sliding", "clamped", "spring", "heartfem")
 EPI_SPRING_PA_PER_MM = 9.0  # the original pipeline's 90 Pa per unit length, with lengths in cm
 
 
 def _supports(mesh: TetMesh, base: str) -> Supports:
     """sliding: base z fixed, in-plane rigid motions removed; clamped: base fixed; spring: sliding
-    plus a normal spring on the epicardium (the original paper's heartFEM pipeline)."""
+    plus a normal spring on the epicardium; heartfem: as spring, but the rigid motions are removed
+    the original pipeline's way (∫u_x = ∫u_y = 0, ∫X × u = 0 over the wall)."""
     if base == "sliding":
         return Supports(mesh.base, (2,), gauge=True)
     if base == "spring":
         return Supports(mesh.base, (2,), gauge=True, spring_facets=mesh.epi, spring_pa_per_mm=EPI_SPRING_PA_PER_MM)
+    if base == "heartfem":
+        return Supports(mesh.base, (2,), gauge=True, gauge_region="volume", spring_facets=mesh.epi,
+                        spring_pa_per_mm=EPI_SPRING_PA_PER_MM)
     if base == "clamped":
         return Supports(mesh.base, (0, 1, 2), gauge=False)
     raise ValueError(f"unknown base condition {base!r}; choose {' or '.join(BASE_CONDITIONS)}")
 
 
-def _frames(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity, phi=None) -> np.ndarray:
+def _frames(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity, fibres: str = "laplace") -> np.ndarray:
     lam = quadrature_barycentric(fidelity.quad_degree)
-    return fibre_frames(mesh, params.helix_endo_deg, params.helix_epi_deg, lam, phi)
+    return rule_frames(fibres, mesh, params.helix_endo_deg, params.helix_epi_deg, lam)
 
 
 def lv_problem(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str, base: str = "sliding",
-               material: FungParameters | None = None) -> MechanicsProblem:
-    """Fibres are computed on `mesh` (the stress-free configuration) from the Laplace coordinate."""
+               material: FungParameters | None = None, fibres: str = "laplace") -> MechanicsProblem:
+    """Fibres are computed on `mesh` (the stress-free configuration) by the rule `fibres`:
+    "laplace" (Laplace transmural coordinate, ours) or "heartfem" (the original dataset's)."""
+    if fibres not in FIBRE_RULES:
+        raise ValueError(f"unknown fibre rule {fibres!r}; choose {' or '.join(FIBRE_RULES)}")
     fidelity = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
     material = material or FungParameters(params.stiffness_pa)
     return MechanicsProblem(mesh.nodes, mesh.tets, mesh.endo, _supports(mesh, base), fidelity, material,
-                            _frames(mesh, params, fidelity))
+                            _frames(mesh, params, fidelity, fibres))
 
 
 @dataclass
@@ -58,11 +65,11 @@ class ForwardResult:
 
 def forward_solve(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
                   base: str = "sliding", linsolve: SparseSolver | None = None,
-                  initial_state: np.ndarray | None = None) -> ForwardResult:
+                  initial_state: np.ndarray | None = None, fibres: str = "laplace") -> ForwardResult:
     """Inflate the stress-free `mesh` to ED pressure, from zero load with adaptive steps; or, given
     `initial_state` (a full unknown vector near the loaded equilibrium), by Newton at full load,
     falling back to load stepping. Raises SolveError if it does not converge."""
-    problem = lv_problem(mesh, params, fidelity, base)
+    problem = lv_problem(mesh, params, fidelity, base, fibres=fibres)
     z = None
     if initial_state is not None:
         try:
@@ -88,7 +95,7 @@ class InverseResult:
 def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
                   base: str = "sliding", initial_unloaded: np.ndarray | None = None,
                   tol_mm: float | None = None, linsolve: SparseSolver | None = None,
-                  reuse_factor: bool | None = None) -> InverseResult:
+                  reuse_factor: bool | None = None, fibres: str = "laplace") -> InverseResult:
     """Unloaded geometry X with x(X) = x_ED, by the backward-displacement fixed point
     X ← X − (x(X) − x_ED) (Anderson-accelerated), each re-solve warm-started from the previous
     displacement field (which maps the plain update exactly onto x_ED).
@@ -107,7 +114,7 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
         raise ValueError("initial unloaded guess must be finite and have one point per ED node")
     check_geometry(X, ed_mesh.tets)
     linsolve = linsolve or SparseSolver()
-    problem = lv_problem(ed_mesh.with_nodes(X), params, fid, base)
+    problem = lv_problem(ed_mesh.with_nodes(X), params, fid, base, fibres=fibres)
     stats = SolveStats()
     history: list[float] = []
     accel = _Anderson(memory=5)
@@ -141,7 +148,7 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
             X = accel.step(X_prev, mismatch) if accelerated else X_prev - mismatch
             try:
                 check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
-                problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid))
+                problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid, fibres))
                 try:
                     z, st = inflate(problem, params.pressure_pa, z0=z_prev, start_load=1.0,
                                     linsolve=linsolve, looseness=looseness, reuse_factor=reuse_factor)
@@ -211,7 +218,7 @@ class Pair:
 
 def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
               base: str = "sliding", initial_unloaded: np.ndarray | None = None,
-              forward_from_scratch: bool = False) -> Pair:
+              forward_from_scratch: bool = False, fibres: str = "laplace") -> Pair:
     """A physically consistent training pair (unloaded X, loaded x(X)).
 
     1. Without `initial_unloaded`, presets with a `coarse_guess` preset (accurate → fast) first run
@@ -226,11 +233,12 @@ def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str
     t0 = time.perf_counter()
     guess_s = 0.0
     if initial_unloaded is None and fid.coarse_guess:
-        initial_unloaded = inverse_solve(ed_mesh, params, fid.coarse_guess, base, tol_mm=1e-2).unloaded_nodes
+        initial_unloaded = inverse_solve(ed_mesh, params, fid.coarse_guess, base, tol_mm=1e-2,
+                                         fibres=fibres).unloaded_nodes
         guess_s = time.perf_counter() - t0
-    inv = inverse_solve(ed_mesh, params, fid, base, initial_unloaded, linsolve=linsolve)
+    inv = inverse_solve(ed_mesh, params, fid, base, initial_unloaded, linsolve=linsolve, fibres=fibres)
     fwd = forward_solve(ed_mesh.with_nodes(inv.unloaded_nodes), params, fid, base, linsolve=linsolve,
-                        initial_state=None if forward_from_scratch else inv.state)
+                        initial_state=None if forward_from_scratch else inv.state, fibres=fibres)
     if fwd.stats.min_jacobian <= 0 or not np.all(np.isfinite(fwd.loaded_nodes)):
         raise SolveError("forward solve of the unloaded geometry produced an invalid state")
     roundtrip = float(np.linalg.norm(fwd.loaded_nodes - ed_mesh.nodes, axis=1).max())

@@ -159,3 +159,19 @@ def test_epicardial_spring_restrains_the_wall(coarse_lv):
     d_free = np.linalg.norm(free.displacement[epi], axis=1).mean()
     d_sprung = np.linalg.norm(sprung.displacement[epi], axis=1).mean()
     assert 0.5 * d_free < d_sprung < d_free
+
+
+def test_heartfem_base_removes_rigid_motion_over_the_wall(coarse_lv):
+    """base="heartfem": base z fixed, and ∫u_x = ∫u_y = 0, ∫X × u = 0 over the wall (as heartFEM's
+    Lagrange multipliers), checked with the preset's own quadrature."""
+    params = CaseParameters(8.0, 150.0, 60.0, -60.0)
+    result = forward_solve(coarse_lv, params, "fast", "heartfem", fibres="heartfem")
+    np.testing.assert_allclose(result.displacement[coarse_lv.base_nodes(), 2], 0.0, atol=1e-12)
+    cq = cell_quadrature(coarse_lv.nodes, coarse_lv.tets, 1, 1)
+    u = np.einsum("eai,aq->eqi", result.displacement[coarse_lv.tets], cq.lam)
+    X = np.einsum("eai,aq->eqi", coarse_lv.nodes[coarse_lv.tets], cq.lam)
+    scale = np.einsum("eq,eq->", np.linalg.norm(u, axis=-1), cq.dV)
+    lever = np.abs(X).max()
+    assert np.abs(np.einsum("eqi,eq->i", u, cq.dV)[:2]).max() < 1e-8 * scale
+    assert np.abs(np.einsum("eqi,eq->i", np.cross(X, u), cq.dV)).max() < 1e-8 * scale * lever
+    assert np.abs(result.displacement).max() > 1.0  # it did inflate

@@ -89,3 +89,48 @@ def test_fibre_frames_orthonormal_with_linear_helix(default_mesh):
     theta = np.deg2rad(60.0 - 120.0 * phi_q)
     np.testing.assert_allclose(np.einsum("eqi,ei->eq", frames[..., 0], el), np.sin(theta), atol=1e-12)
     np.testing.assert_allclose(np.einsum("eqi,ei->eq", frames[..., 1], t), 1.0, atol=1e-12)
+
+
+def test_closest_points_on_triangles_match_dense_sampling():
+    """Every region of the triangle (interior, three edges, three vertices) against a dense
+    barycentric sampling of the triangle."""
+    from solver.fibres import closest_points_on_triangles
+
+    rng = np.random.default_rng(3)
+    a, b, c = np.array([0.0, 0, 0]), np.array([2.0, 0, 0]), np.array([0.5, 1.5, 0.3])
+    pts = rng.normal(scale=2.0, size=(300, 3)) + np.array([0.8, 0.5, 0.0])
+    got = closest_points_on_triangles(pts, *(np.broadcast_to(v, pts.shape) for v in (a, b, c)))
+    s = np.linspace(0, 1, 241)
+    u, v = np.meshgrid(s, s)
+    keep = u + v <= 1
+    samples = a + np.outer(u[keep], b - a) + np.outer(v[keep], c - a)
+    brute = np.sqrt(((pts[:, None, :] - samples[None]) ** 2).sum(-1)).min(axis=1)
+    np.testing.assert_allclose(np.linalg.norm(got - pts, axis=1), brute, atol=2e-2)
+    assert np.all(np.linalg.norm(got - pts, axis=1) <= brute + 1e-12)
+
+
+def test_heartfem_frames_orthonormal_and_transmural(default_mesh):
+    """heartFEM's rule: orthonormal (f, s, n); s points endo → epi (away from the long axis on the
+    free wall); helix angles stay within the endo/epi range and reach both signs; at points next
+    to the endocardium the angle is near the endo value (squared-distance coordinate ≈ 0)."""
+    from solver.fibres import heartfem_frames, surface_distance
+
+    m = default_mesh
+    lam = cell_quadrature(m.nodes, m.tets, 2, 4).lam
+    frames = heartfem_frames(m, 60.0, -60.0, lam)
+    gram = np.einsum("eqia,eqib->eqab", frames, frames)
+    np.testing.assert_allclose(gram, np.broadcast_to(np.eye(3), gram.shape), atol=1e-10)
+    x = np.einsum("eai,aq->eqi", m.nodes[m.tets], lam)
+    radial = x[..., :2] / np.linalg.norm(x[..., :2], axis=-1, keepdims=True)
+    mid = x[..., 2] > 0.5 * m.nodes[:, 2].min()  # upper half: the wall faces outwards
+    assert np.mean((frames[..., :2, 1] * radial).sum(-1)[mid] > 0.5) > 0.95
+    f, t = frames[..., 0], frames[..., 1]
+    ec = np.cross(np.array([0.0, 0.0, 1.0]), t)
+    ec /= np.linalg.norm(ec, axis=-1, keepdims=True)
+    theta = np.degrees(np.arctan2((f * np.cross(t, ec)).sum(-1), (f * ec).sum(-1)))
+    assert theta.min() >= -60.0 - 1e-6 and theta.max() <= 60.0 + 1e-6
+    assert theta.min() < -30 and theta.max() > 30
+    d_endo, _ = surface_distance(x.reshape(-1, 3), m.nodes, m.endo)
+    d_epi, _ = surface_distance(x.reshape(-1, 3), m.nodes, m.epi)
+    near_endo = (d_endo < 0.2 * d_epi).reshape(theta.shape)
+    assert near_endo.any() and np.all(theta[near_endo] > 55.0)

@@ -37,6 +37,7 @@ class ModelConfig:
     decoder: str = "mlp"
     cycle: bool = True
     lambda_cycle: float = 0.2
+    reverse_weight: float = 0.0  # λ_rev: also supervise the reverse decoder on labelled pairs (0 = paper)
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
     kind: str = "gnn"
@@ -53,6 +54,8 @@ class ModelConfig:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         if self.hidden < 1 or self.heads < 1 or self.layers < 1:
             raise TrainerError("model hidden, heads and layers must be ≥ 1")
+        if self.reverse_weight < 0 or self.lambda_cycle < 0:
+            raise TrainerError("loss weights lambda_cycle and reverse_weight must be ≥ 0")
         if not 0 <= self.dropout < 1:
             raise TrainerError(f"dropout must be in [0, 1), got {self.dropout}")
 
@@ -86,9 +89,13 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     "C5": replace(PAPER, decoder="gat"),
     "C6": replace(PAPER, pooling="max"),
     "pca": replace(PAPER, kind="pca", cycle=False),
+    # ours: the reverse (unloaded→ED) decoder also learns from the labelled pairs, so the cycle term
+    # on unlabelled cases checks the unloading against a trained forward map (matters at low SR)
+    "R1": replace(PAPER, reverse_weight=1.0),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
-               "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | pca")
+               "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
+               "R1 (reverse decoder supervised too) | pca")
 
 
 def named_config(name: str) -> ModelConfig:

@@ -227,8 +227,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             batch = _move(batch, dist.device)
             opt.zero_grad(set_to_none=True)
             with _autocast(cfg, dist.device):
-                d_unl, d_ed = wrapped(batch)
-            terms = loss_terms(d_unl, d_ed, batch, cfg.model.lambda_cycle)
+                d_unl, d_ed, d_rev = wrapped(batch, reverse=True)
+            terms = loss_terms(d_unl, d_ed, batch, cfg.model.lambda_cycle, d_rev, cfg.model.reverse_weight)
             terms["loss"].backward()
             opt.step()
             g = batch.num_graphs

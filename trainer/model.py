@@ -194,6 +194,7 @@ class HeartUnloadNet(nn.Module):
     d_unl = Dec_unl(encode(x̂_ED, p))                         (normalised X − x_ED)
     d_ed  = Dec_ed(encode(x̂_ED + ρ d_unl, p))                (normalised x_ED − X̂; ρ = disp/coord scale)
     loss  = MSE(d_unl, y)[labelled] + λ_cycle · MSE(d_unl + d_ed, 0)   (= reconstructed ED − ED)
+            [+ λ_rev · MSE(Dec_ed(encode(x̂_ED + ρ y, p)), −y)[labelled]  when reverse_weight λ_rev > 0]
     """
 
     def __init__(self, cfg: ModelConfig, disp_to_coord: float = 0.1):
@@ -230,8 +231,11 @@ class HeartUnloadNet(nn.Module):
             h = self.fusion(h, batch, self.param_encoder(params), None)
         return h
 
-    def forward(self, data, cycle: bool | None = None):
-        """Returns (d_unl [N,3], d_ed [N,3] or None), both normalised displacements."""
+    def forward(self, data, cycle: bool | None = None, reverse: bool = False):
+        """Returns (d_unl [N,3], d_ed [N,3] or None), both normalised displacements; with
+        reverse=True a third item, d_rev [N,3] or None: the reverse decoder applied to the true
+        unloaded mesh x̂_ED + ρ y (labelled graphs; where y is withheld the input is the ED mesh and
+        the output is ignored by the loss). Computed only when cfg.reverse_weight > 0."""
         cycle = self.cfg.cycle if cycle is None else (cycle and self.cfg.cycle)
         x, ei, batch = data.x, data.edge_index, data.batch
         if batch is None:
@@ -239,17 +243,22 @@ class HeartUnloadNet(nn.Module):
         B = int(data.num_graphs) if hasattr(data, "num_graphs") and data.num_graphs else 1
         params, region = data.params, data.region
         d_unl = self.dec_unloaded(self.encode(x, ei, batch, params, region, B), ei)
-        if not cycle:
-            return d_unl, None
-        x_unl = x + self.disp_to_coord * d_unl
-        d_ed = self.dec_ed(self.encode(x_unl, ei, batch, params, region, B), ei)
-        return d_unl, d_ed
+        d_ed = d_rev = None
+        if cycle:
+            x_unl = x + self.disp_to_coord * d_unl
+            d_ed = self.dec_ed(self.encode(x_unl, ei, batch, params, region, B), ei)
+        if reverse and cycle and self.cfg.reverse_weight > 0:
+            x_true = x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(x.dtype)
+            d_rev = self.dec_ed(self.encode(x_true, ei, batch, params, region, B), ei)
+        return (d_unl, d_ed, d_rev) if reverse else (d_unl, d_ed)
 
 
-def loss_terms(d_unl, d_ed, data, lambda_cycle: float) -> dict:
-    """Supervised MSE over the nodes of labelled graphs (0 when none), cycle MSE over all nodes."""
+def loss_terms(d_unl, d_ed, data, lambda_cycle: float, d_rev=None, reverse_weight: float = 0.0) -> dict:
+    """Supervised MSE over the nodes of labelled graphs (0 when none), cycle MSE over all nodes,
+    and (d_rev given) the reverse decoder's supervised MSE against −y on labelled nodes."""
     node_lab = data.labelled[data.batch] if data.batch is not None else data.labelled.expand(d_unl.shape[0])
-    if bool(node_lab.any()):
+    any_lab = bool(node_lab.any())
+    if any_lab:
         sup = F.mse_loss(d_unl[node_lab].float(), data.y[node_lab])
     else:
         sup = d_unl.float().sum() * 0.0  # keeps the graph (DDP) with a zero gradient
@@ -259,7 +268,11 @@ def loss_terms(d_unl, d_ed, data, lambda_cycle: float) -> dict:
     else:
         cyc = (d_unl.float() + d_ed.float()).pow(2).mean()
         total = sup + lambda_cycle * cyc
-    return {"loss": total, "sup": sup, "cycle": cyc, "labelled_nodes": int(node_lab.sum())}
+    rev = torch.zeros((), device=d_unl.device)
+    if d_rev is not None:
+        rev = F.mse_loss(d_rev[node_lab].float(), -data.y[node_lab]) if any_lab else d_rev.float().sum() * 0.0
+        total = total + reverse_weight * rev
+    return {"loss": total, "sup": sup, "cycle": cyc, "reverse": rev, "labelled_nodes": int(node_lab.sum())}
 
 
 def count_parameters(model: nn.Module) -> int:
