@@ -90,7 +90,8 @@ def helix_angle_at_nodes(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: fl
 # solve. Its transmural coordinate is d = d_endo² / (d_endo² + d_epi²): vtkCellLocator's
 # FindClosestPoint returns the *squared* distance, which that code divides as if it were the
 # distance. The transmural direction is t = unit(−(1 − d) N_endo + d N_epi) with the surface
-# normals (out of the wall) of the closest triangles, e_c = e_z × t, e_l = t × e_c, and the helix
+# normals (out of the wall) at the closest points (heartFEM takes the closest face's normal; we
+# interpolate vertex normals, which keeps the frames continuous for the inverse problem), e_c = e_z × t, e_l = t × e_c, and the helix
 # angle is linear in d. On a wall one element thick (the dataset's meshes) the squared ratio moves
 # the quadrature points' angles from ±30° to ±48° for 60/−60 — it shows in the displacements.
 
@@ -128,14 +129,19 @@ def closest_points_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray
 
 
 def surface_distance(points: np.ndarray, nodes: np.ndarray, triangles: np.ndarray, candidates: int = 16):
-    """Distance from each point [k, 3] to a triangulated surface, and the unit normal of the
-    closest triangle (orientation as the triangles are wound). The exact closest point is searched
-    among the `candidates` triangles with the nearest centroids."""
+    """Distance from each point [k, 3] to a triangulated surface, and the unit surface normal at
+    the closest point (orientation as the triangles are wound). The normal is interpolated from
+    area-weighted vertex normals, so it varies continuously with the points and the surface (the
+    inverse problem moves the reference and rebuilds the fibres; piecewise-constant face normals
+    would make it chatter). The closest point is searched among the `candidates` triangles with
+    the nearest centroids."""
     from scipy.spatial import cKDTree
 
     tri = nodes[triangles]
-    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 × area × unit normal
+    vertex_n = np.zeros_like(nodes)
+    np.add.at(vertex_n, triangles.ravel(), np.repeat(face_n, 3, axis=0))
+    vertex_n /= np.maximum(np.linalg.norm(vertex_n, axis=1, keepdims=True), 1e-300)
     m = min(candidates, len(triangles))
     _, near = cKDTree(tri.mean(axis=1)).query(points, k=m)
     near = near.reshape(len(points), m)
@@ -143,8 +149,24 @@ def surface_distance(points: np.ndarray, nodes: np.ndarray, triangles: np.ndarra
     flat = near.ravel()
     q = closest_points_on_triangles(rep, tri[flat, 0], tri[flat, 1], tri[flat, 2])
     dist = np.linalg.norm(q - rep, axis=1).reshape(len(points), m)
-    best = near[np.arange(len(points)), dist.argmin(axis=1)]
-    return dist.min(axis=1), normals[best]
+    pick = dist.argmin(axis=1)
+    best = near[np.arange(len(points)), pick]
+    q = q.reshape(len(points), m, 3)[np.arange(len(points)), pick]
+    lam = _barycentric(q, *(tri[best, i] for i in range(3)))
+    normal = np.einsum("ka,kai->ki", lam, vertex_n[triangles[best]])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    return dist.min(axis=1), normal
+
+
+def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates [k, 3] of points q lying on triangles (a, b, c)."""
+    v0, v1, v2 = b - a, c - a, q - a
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)
 
 
 def _outward(mesh: TetMesh, triangles: np.ndarray) -> np.ndarray:

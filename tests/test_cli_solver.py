@@ -122,6 +122,7 @@ BAD_PARAMS = [
     (["--pressure", 8, "--stiffness", 150, "--endo", 95], "within ±90"),
     (["--pressure", 8, "--stiffness", 150, "--epi", -120], "within ±90"),
     (["--pressure", "nan", "--stiffness", 150], "finite"),
+    (["--pressure", 8, "--stiffness", 150, "--fibres", "bogus"], "--fibres must be laplace or heartfem"),
 ]
 
 

@@ -107,3 +107,54 @@ def test_forward_consistency_on_one_pair(store):
     assert 0.9 < row["ours_loading_mean_mm"] / row["loading_mean_mm"] < 1.1
     ours = check_case(reader, s, k, theirs, "spring", stiffness_factor=2.0, fibres="heartfem")
     assert ours["relative"] > 2 * row["relative"]
+
+
+def test_train_and_evaluate_with_the_source_split(tmp_path):
+    """An imported store laid out over the dataset's train/val/test folders (the fixture pairs
+    copied under three shape numbers): `train --split source` keeps the source assignment, and
+    `evaluate` scores exactly the pairs of the test folder."""
+    import json
+
+    root = tmp_path / "dataset"
+    layout = {"train": ("1", "2"), "val": ("50",), "test": ("59",)}
+    for split, shapes in layout.items():
+        for kind in ("ED", "unloaded"):
+            (root / split / kind).mkdir(parents=True)
+        for shape in shapes:
+            for f in FIXTURES.glob("*.vtu"):
+                kind = "ED" if f.name.startswith("ED") else "unloaded"
+                shutil.copy(f, root / split / kind / f.name.replace("59_", f"{shape}_", 1))
+    store = tmp_path / "l2u.zarr"
+    r = runner.invoke(app, ["import-l2u", str(root), "--store", str(store)])
+    assert r.exit_code == 0, r.output
+    run_dir = tmp_path / "run"
+    r = runner.invoke(app, ["train", "--store", str(store), "--run-dir", str(run_dir), "--no-ray", "--device", "cpu",
+                            "--split", "source", "--epochs", "1", "--batch-size", "4"])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["evaluate", "--run", str(run_dir), "--store", str(store), "--json", "--no-plots"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output.strip().splitlines()[-1])["cases"] == 4
+    import zarr
+
+    shapes = zarr.open_group(str(store), mode="r")["shapes"]
+    cases = (run_dir / "eval_test" / "cases.csv").read_text().splitlines()[1:]
+    tested = {int(line.split(",")[0]) for line in cases}
+    assert {shapes[str(s)].attrs["source_split"] for s in tested} == {"test"}
+
+
+def test_imported_cases_keep_their_own_ed_geometry(store):
+    """Within a shape their ED meshes differ by up to ~0.4 mm: each case's graph starts from its own
+    ED (case.loaded), and its label is its own unloaded − ED, not the shape mesh's."""
+    from trainer.data import Normalisation, build_graphs, read_store
+
+    reader = PairReader(str(store))
+    cases = read_store(str(store))
+    assert len(cases.loaded) >= 3  # every pair but (at most) the one the shape mesh came from
+    key = sorted(cases.loaded)[0]
+    case = reader.case(*key)
+    assert np.abs(case.loaded - reader.mesh(key[0]).nodes).max() > 0.05
+    bundle_norm = Normalisation(
+        (0.0, 0.0, -40.0), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
+    g = build_graphs(cases, [key], bundle_norm)[0]
+    np.testing.assert_allclose(g.x.numpy(), bundle_norm.coords(case.loaded), atol=1e-5)
+    np.testing.assert_allclose(g.y.numpy(), (case.unloaded - case.loaded) / 2.0, atol=1e-5)

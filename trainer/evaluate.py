@@ -48,7 +48,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
         keys = cases.keys
         if not keys:
             raise TrainerError(f"store {store} has no done cases")
-    items = [(cases.features[k[0]], cases.params[k], k[0]) for k in keys]
+    items = [(cases.case_features(k), cases.params[k], k[0]) for k in keys]
     disps = pred.predict_many(items, batch_size)
     single_ms = pred.time_ms_per_case(items[:timing_cases], 1)
     batched_ms = pred.time_ms_per_case(items[:max(timing_cases, batch_size)], batch_size)
@@ -74,7 +74,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     (out_dir / "summary.json").write_text(json.dumps({**summary, **extras, "aggregate": agg}, indent=2))
     files = ["cases.csv", "by_parameter.csv", "summary.json"]
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
-    files += _error_map_vtu(out_dir, store, keys[median], cases.features[keys[median][0]].ed_mm + disps[median],
+    files += _error_map_vtu(out_dir, store, keys[median], cases.ed(keys[median]) + disps[median],
                             errors[median])
     if plots:
         files += _plots(out_dir, errors, rows[median], items[median][0], errors[median], state.get("history", []))

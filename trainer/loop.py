@@ -295,8 +295,8 @@ def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0
 
     c = bundle.cases
     keys = sorted(bundle.labelled)
-    pca = PCABaseline.fit(c.features, keys, c.params, c.unloaded, bundle.norm, cfg.model.pca_components,
-                          cfg.model.pca_ridge)
+    pca = PCABaseline.fit(c.features, keys, c.params, {k: c.displacement(k) for k in keys}, bundle.norm,
+                          cfg.model.pca_components, cfg.model.pca_ridge)
     if dist.is_main and dist.write_local:
         state = {**base_state(cfg, bundle, "pca"), "model": pca.state_dict(), "best_model": pca.state_dict(),
                  "epoch": 1, "history": [], "finished": True, "n_parameters": int(sum(v.numel() for v in pca.state_dict().values()))}

@@ -49,13 +49,14 @@ class PCABaseline:
         self._cache: dict = {}
 
     @classmethod
-    def fit(cls, features: dict, keys: list, params: dict, unloaded: dict, norm: Normalisation,
+    def fit(cls, features: dict, keys: list, params: dict, displacements: dict, norm: Normalisation,
             n_components: int = 16, ridge: float = 1e-2) -> "PCABaseline":
-        """features: shape → MeshFeatures; keys: labelled training cases; params/unloaded by key."""
+        """features: shape → MeshFeatures; keys: labelled training cases; params and unloading
+        displacements (X − x_ED, mm) by key."""
         shapes = sorted({k[0] for k in keys})
         rs = {s: resampling(features[s]) for s in shapes}
         desc = {s: (rs[s][0] @ norm.coords(features[s].ed_mm)).ravel() for s in shapes}
-        D = np.stack([(rs[k[0]][0] @ (unloaded[k] - features[k[0]].ed_mm)).ravel() for k in keys])
+        D = np.stack([(rs[k[0]][0] @ displacements[k]).ravel() for k in keys])
         d_mean = D.mean(axis=0)
         _, _, Vt = np.linalg.svd(D - d_mean, full_matrices=False)
         m = max(1, min(n_components, len(keys) - 1, Vt.shape[0]))
