@@ -676,6 +676,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              endo: str = typer.Option(None, "--endo", help="Endocardial helix angles, degrees (default 60,65,70)."),
              epi: str = typer.Option(None, "--epi", help="Epicardial helix angles, degrees (default −60,−65,−70; write --epi=-60,-65)."),
              fidelity: str = typer.Option(None, "--fidelity", help="Solver preset: fast | accurate (default accurate)."),
+             base: str = typer.Option(None, "--base", help="Base condition: sliding (default) | clamped | spring | heartfem."),
+             fibres: str = typer.Option(None, "--fibres", help="Fibre rule: laplace (default) | heartfem (the original pipeline's)."),
              seed: int = typer.Option(None, "--seed", help="Shape-model seed (default 0)."),
              nodes: int = typer.Option(None, "--nodes", help="Target mesh node count (default 800; --local 350)."),
              meshes: str = typer.Option(None, "--meshes", help="Use your ED meshes as the shape set: a folder or a glob of mesh files (any meshio format; readable by every worker)."),
@@ -703,7 +705,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             raise ValueError("--local starts its own two-core Ray; it does not take --address")
         if address is not None and num_cpus is not None:
             raise ValueError("--num-cpus sizes a local Ray; a cluster joined with --address has its own CPUs")
-        explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes,
+        explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes, "base": base, "fibres": fibres,
                     "mesh_units": units.value if units is not None else None}
         if meshes is not None:
             from orchestrator.grid import find_meshes

@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from solver.fidelity import get_fidelity
+from solver.fibres import FIBRE_RULES
 from solver.lv import BASE_CONDITIONS
 from solver.meshing import MESH_LEVELS
 from solver.parameters import PAPER_GRID, CaseParameters
@@ -32,6 +33,7 @@ class SweepSpec:
     seed: int = 0
     nodes: int = MESH_LEVELS["default"]
     base: str = "sliding"
+    fibres: str = "laplace"  # fibre rule: laplace | heartfem
     meshes: tuple = ()  # user ED mesh files as the shape set (shape id = position), instead of the model
     mesh_units: str = "mm"
 
@@ -66,7 +68,9 @@ class SweepSpec:
         if self.nodes < 50:
             raise ValueError(f"--nodes must be ≥ 50, got {self.nodes}")
         if self.base not in BASE_CONDITIONS:
-            raise ValueError(f"unknown base condition {self.base!r}")
+            raise ValueError(f"--base must be one of {', '.join(BASE_CONDITIONS)}, got {self.base!r}")
+        if self.fibres not in FIBRE_RULES:
+            raise ValueError(f"--fibres must be {' or '.join(FIBRE_RULES)}, got {self.fibres!r}")
         if self.meshes and self.shapes != len(self.meshes):
             raise ValueError(f"--shapes {self.shapes} does not match the {len(self.meshes)} mesh files given")
         return self
@@ -108,6 +112,7 @@ class SweepSpec:
             "seed": self.seed,
             "mesh_nodes": self.nodes,
             "base": self.base,
+            "fibres": self.fibres,
             "shape_source": "files" if self.meshes else "shape model",
             "meshes": [{"path": m, "sha256": file_digest(m)} for m in self.meshes],
             "mesh_units": self.mesh_units,
@@ -123,7 +128,7 @@ class SweepSpec:
         g = attrs["grid"]
         return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
                    seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"),
-                   meshes=tuple(m["path"] for m in attrs.get("meshes", [])), mesh_units=attrs.get("mesh_units", "mm"))
+                   fibres=attrs.get("fibres", "laplace"), meshes=tuple(m["path"] for m in attrs.get("meshes", [])), mesh_units=attrs.get("mesh_units", "mm"))
 
     def conflicts(self, attrs: dict) -> list[str]:
         """How this request differs from the store's (empty: it may resume that store)."""
@@ -141,7 +146,9 @@ class SweepSpec:
         if stored.nodes != self.nodes:
             out.append(f"--nodes {self.nodes} (store has {stored.nodes})")
         if stored.base != self.base:
-            out.append(f"base {self.base} (store has {stored.base})")
+            out.append(f"--base {self.base} (store has {stored.base})")
+        if stored.fibres != self.fibres:
+            out.append(f"--fibres {self.fibres} (store has {stored.fibres})")
         stored_digests = [m["sha256"] for m in attrs.get("meshes", [])]
         if stored_digests != [file_digest(m) for m in self.meshes]:
             out.append(f"--meshes ({len(self.meshes)} files; the store was made from "

@@ -32,7 +32,7 @@ def calibrate(spec: SweepSpec) -> dict:
     m = mesh_shape(0, spec.seed, spec.nodes, *spec.mesh_source(0))
     mesh_s = time.perf_counter() - t0
     params = spec.mid_params()
-    res = run_case(m["mesh"], params, spec.fidelity, spec.base)
+    res = run_case(m["mesh"], params, spec.fidelity, spec.base, fibres=spec.fibres)
     out = {"nodes": int(m["mesh"].n_nodes), "tets": int(len(m["mesh"].tets)), "mesh_s": mesh_s,
            "params": params, "pair_s": res["task_wall_s"], "ok": res["ok"], "reason": res["reason"]}
     if res["ok"]:

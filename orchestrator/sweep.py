@@ -225,7 +225,8 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
                     s, k = todo.popleft()
                     if s not in mesh_refs:
                         mesh_refs[s] = ray.put(_tet_mesh(store, s))
-                    ref = case_remote.remote(mesh_refs[s], tuple(store.params[k]), spec.fidelity, spec.base)
+                    ref = case_remote.remote(mesh_refs[s], tuple(store.params[k]), spec.fidelity, spec.base,
+                                             fibres=spec.fibres)
                     inflight[ref] = (s, k, time.time())
                     report.submitted += 1
                 ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)

@@ -52,7 +52,7 @@ def robust_fidelity(fidelity):
                    min_load_step=fidelity.min_load_step * ROBUST_MIN_STEP_FACTOR)
 
 
-def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True) -> dict:
+def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True, fibres: str = "laplace") -> dict:
     """One training pair: inverse then forward FE. A solver failure (SolveError, or an inverted
     trial geometry) is retried once with `robust_fidelity`; if that fails too the result says so
     (ok False, reason) — this function does not raise for a case that will not solve.
@@ -78,7 +78,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     for setting in settings:
         attempts += 1
         try:
-            pair = make_pair(mesh, params, setting, base)
+            pair = make_pair(mesh, params, setting, base, fibres=fibres)
             break
         except (SolveError, MeshError) as exc:
             reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)

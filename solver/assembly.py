@@ -175,7 +175,12 @@ class MechanicsProblem:
         self._gauge_cols = np.concatenate([c for _, c, _ in parts])
         total = w.sum()
         lever = float(np.sqrt((m ** 2).sum() / max((w ** 2).sum(), 1e-300)))  # ~ wall radius, mm
-        vals = np.concatenate([v / total for _, _, v in parts[:2]] + [v / (total * lever) for _, _, v in parts[2:]])
+        # rows in force units (Pa·mm² per mm of mean motion), so that Newton's residual test holds the
+        # constraints as tightly as equilibrium (these multipliers exert real forces: the inverse
+        # problem's fixed point stalls at the constraint slack otherwise)
+        force = self.material.stiffness_pa * total ** (1.0 / 3.0)
+        vals = np.concatenate([v * force / total for _, _, v in parts[:2]] +
+                              [v * force / (total * lever) for _, _, v in parts[2:]])
         return vals
 
     # --- sparsity ----------------------------------------------------------------------------

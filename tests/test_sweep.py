@@ -197,7 +197,8 @@ SMALL = ["--shapes", "1", "--pressures", "8,12", "--stiffness", "100", "--endo",
          "--fidelity", "fast", "--nodes", "200"]
 
 
-@pytest.mark.parametrize("case", ["fidelity", "empty", "file", "schema", "grid", "seed", "version"])
+@pytest.mark.parametrize("case", ["fidelity", "empty", "file", "schema", "grid", "seed", "version", "fibres",
+                                  "fibres_conflict", "base"])
 def test_bad_arguments_exit_2_one_line_store_untouched(tmp_path, small_store, case):
     target = small_store
     args = SMALL[:]
@@ -217,6 +218,12 @@ def test_bad_arguments_exit_2_one_line_store_untouched(tmp_path, small_store, ca
         args += ["--seed", "3"]
     elif case == "version":
         zarr.open_group(str(small_store), mode="r+").attrs.update({"schema_version": 2})
+    elif case == "fibres":
+        args += ["--fibres", "random"]
+    elif case == "fibres_conflict":  # the store was made with Laplace fibres
+        args += ["--fibres", "heartfem"]
+    elif case == "base":
+        args += ["--base", "glued"]
     before = _snapshot(target)
     code, err = _run_cli(["generate", "--store", str(target)] + args)
     assert code == 2

@@ -213,15 +213,15 @@ def read_store(location, keys: list | None = None) -> StoreCases:
 def store_fingerprint(attrs: dict, features: dict) -> dict:
     """What ties a run to its store: grid, fidelity, seed, base, and the node count of each shape."""
     return {"grid": attrs.get("grid"), "fidelity": attrs.get("fidelity"), "seed": attrs.get("seed"),
-            "base": attrs.get("base"), "mesh_nodes": attrs.get("mesh_nodes"),
+            "base": attrs.get("base"), "fibres": attrs.get("fibres", "laplace"), "mesh_nodes": attrs.get("mesh_nodes"),
             "shape_nodes": {str(s): int(f.ed_mm.shape[0]) for s, f in sorted(features.items())}}
 
 
 def check_fingerprint(saved: dict, attrs: dict, features: dict, location) -> None:
     """Raise TrainerError (one line) when the store is not the one the run was trained on."""
     now = store_fingerprint(attrs, features)
-    for name in ("grid", "fidelity", "seed", "base"):
-        if saved.get(name) != now.get(name):
+    for name in ("grid", "fidelity", "seed", "base", "fibres"):
+        if saved.get(name, "laplace" if name == "fibres" else None) != now.get(name):  # runs before fibres were recorded
             raise TrainerError(f"store {location} does not match the run: {name} is {now.get(name)!r}, "
                                f"the run was trained on {saved.get(name)!r}")
     for s, n in now["shape_nodes"].items():
