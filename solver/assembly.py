@@ -32,6 +32,10 @@ class Supports:
     spring_facets: np.ndarray | None = None  # boundary triangles with a normal spring (Robin condition)
     spring_pa_per_mm: float = 0.0  # traction −k (u·N) N on them, k in Pa/mm
 
+    def __post_init__(self):
+        if self.gauge_region not in ("base", "volume"):
+            raise ValueError(f"unknown gauge region {self.gauge_region!r}; choose base or volume")
+
 
 class SparsityPattern:
     """COO entries → CSR data positions, built once; assembling is then one bincount."""
@@ -88,8 +92,6 @@ class MechanicsProblem:
         fixed = np.zeros(self.n_u + self.n_p, bool)
         for comp in supports.components:
             fixed[3 * support_dofs + comp] = True
-        if supports.gauge_region not in ("base", "volume"):
-            raise ValueError(f"unknown gauge region {supports.gauge_region!r}; choose base or volume")
         self.n_gauge = (5 if supports.gauge_region == "volume" else 3) if supports.gauge else 0
         n_full = self.n_u + self.n_p + self.n_gauge
         fixed = np.concatenate([fixed, np.zeros(self.n_gauge, bool)])

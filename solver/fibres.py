@@ -169,26 +169,6 @@ def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> 
     return np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)
 
 
-def _outward(mesh: TetMesh, triangles: np.ndarray) -> np.ndarray:
-    """The triangles wound so their normals point out of the wall."""
-    tri = mesh.nodes[triangles]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    flip = ((tri.mean(axis=1) - _face_owner_centroid(mesh, triangles)) * normal).sum(1) < 0
-    out = triangles.copy()
-    out[flip] = out[flip][:, [0, 2, 1]]
-    return out
-
-
-def _face_owner_centroid(mesh: TetMesh, triangles: np.ndarray) -> np.ndarray:
-    """Centroid of the tet that owns each boundary triangle."""
-    faces = np.sort(np.concatenate([mesh.tets[:, [1, 2, 3]], mesh.tets[:, [0, 2, 3]], mesh.tets[:, [0, 1, 3]],
-                                    mesh.tets[:, [0, 1, 2]]]), axis=1)
-    owner = np.tile(np.arange(len(mesh.tets)), 4)
-    lookup = {tuple(f): o for f, o in zip(faces.tolist(), owner.tolist())}
-    tet = np.array([lookup[tuple(t)] for t in np.sort(triangles, axis=1).tolist()])
-    return mesh.nodes[mesh.tets[tet]].mean(axis=1)
-
-
 def _clipped(mesh: TetMesh, triangles: np.ndarray, clip_mm: float) -> np.ndarray:
     """The triangles whose centroids lie more than clip_mm below the base (the highest node)."""
     keep = mesh.nodes[triangles][:, :, 2].mean(axis=1) < mesh.nodes[:, 2].max() - clip_mm
@@ -199,8 +179,9 @@ def heartfem_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, 
                     clip_mm: float = BASE_CLIP_MM) -> np.ndarray:
     """(f, s, n) frames [m, nq, 3, 3] at quadrature points by heartFEM's rule (see above); mm."""
     x = np.einsum("eai,aq->eqi", mesh.nodes[mesh.tets], lam).reshape(-1, 3)
-    d_endo, n_endo = surface_distance(x, mesh.nodes, _clipped(mesh, _outward(mesh, mesh.endo), clip_mm))
-    d_epi, n_epi = surface_distance(x, mesh.nodes, _clipped(mesh, _outward(mesh, mesh.epi), clip_mm))
+    # TetMesh keeps its surface triangles wound out of the wall, so the normals need no fixing
+    d_endo, n_endo = surface_distance(x, mesh.nodes, _clipped(mesh, mesh.endo, clip_mm))
+    d_epi, n_epi = surface_distance(x, mesh.nodes, _clipped(mesh, mesh.epi, clip_mm))
     d = d_endo ** 2 / np.maximum(d_endo ** 2 + d_epi ** 2, 1e-300)  # squared, as heartFEM computes it
     t = -(1.0 - d)[:, None] * n_endo + d[:, None] * n_epi  # out of the wall: −N_endo and N_epi point endo → epi
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-300)
