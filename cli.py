@@ -561,6 +561,8 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                     train_batch: int = typer.Option(None, "--train-batch", help="Training batch (default 32 CPU, 128 GPU)."),
                     bf16: bool = typer.Option(False, "--bf16", help="bf16 autocast (GPU only)."),
                     threads: int = typer.Option(None, "--threads", help="torch CPU threads (default: torch's)."),
+                    gat_kernel: str = typer.Option("sparse", "--gat-kernel",
+                                                   help="sparse (one SpMM per GAT layer) | pyg (GATConv)."),
                     as_json: bool = typer.Option(False, "--json")):
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
     from trainer.bench import bench_model
@@ -580,14 +582,15 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
             if threads < 1:
                 raise ValueError("--threads must be ≥ 1")
             torch.set_num_threads(threads)
-        r = bench_model(device, nodes, config, sizes, train_batch, bf16)
+        r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json.dumps(r))
         return
     typer.echo(f"{r['config']} model, {r['parameters']:,} parameters; mesh {r['nodes']} nodes, {r['edges']} directed edges; "
-               f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, eager PyTorch")
+               f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, eager PyTorch, "
+               f"{r['gat_kernel']} GAT kernel")
     for row in r["inference"]:
         typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} ms per batch)")
     typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "

@@ -3,6 +3,7 @@ a configured model on a real LV mesh, in plain eager PyTorch (no Ray)."""
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -31,7 +32,8 @@ def _timed(fn, device, min_s: float = 1.0, min_runs: int = 3, max_runs: int = 20
 
 
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
-                train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0) -> dict:
+                train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0,
+                gat_kernel: str = "sparse") -> dict:
     from torch_geometric.data import Batch
 
     from solver.meshing import mesh_lv
@@ -42,6 +44,9 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise TrainerError("--device cuda: no CUDA device is available here")
     cfg = named_config(config)
+    if gat_kernel not in ("sparse", "pyg"):
+        raise TrainerError(f"--gat-kernel must be sparse or pyg, got {gat_kernel!r}")
+    cfg = replace(cfg, gat_kernel=gat_kernel)
     if cfg.kind != "gnn":
         raise TrainerError("bench model times the graph network; choose a gnn --config")
     torch.manual_seed(seed)
@@ -85,5 +90,5 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
-            "bf16": bool(bf16 and dev.type == "cuda"), "inference": rows, "train_batch": tb,
+            "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows, "train_batch": tb,
             "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle}

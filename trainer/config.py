@@ -23,6 +23,9 @@ class ModelConfig:
             appended to the node input; no global encoder)
     decoder: mlp | gat
     cycle: run the shared encoder on the predicted unloaded mesh and decode back to ED
+    gat_kernel: how GAT layers sum over neighbours — sparse (one sparse-matrix product per layer,
+            trainer.sparse_gat; the default) | pyg (torch_geometric's GATConv). Same mathematics and
+            parameter names: a checkpoint loads with either
     kind: gnn | pca (the PCA displacement baseline; the other fields are ignored)
     """
 
@@ -41,6 +44,7 @@ class ModelConfig:
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
     kind: str = "gnn"
+    gat_kernel: str = "sparse"
     pca_components: int = 16
     pca_ridge: float = 1e-2
 
@@ -48,7 +52,7 @@ class ModelConfig:
         object.__setattr__(self, "decoder_hidden", tuple(int(v) for v in self.decoder_hidden))
         choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                    "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
-                   "decoder": ("mlp", "gat"), "kind": ("gnn", "pca")}
+                   "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
@@ -150,4 +154,5 @@ class TrainConfig:
 
     def identity(self) -> dict:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
-        return {"model": self.model.as_dict(), "split": self.split, "sr": self.sr, "seed": self.seed}
+        model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
+        return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed}

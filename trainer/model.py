@@ -10,14 +10,19 @@ from torch_geometric.utils import scatter, to_dense_batch
 
 from .config import ModelConfig
 from .data import N_REGIONS
+from .sparse_gat import AttentionGraph, SparseGATConv
 
 N_PARAMS = 4
 
 
-def _conv(kind: str, in_dim: int, hidden: int, heads: int) -> nn.Module:
+def _gat(in_dim: int, hidden: int, heads: int, kernel: str, concat: bool = True) -> nn.Module:
+    return (SparseGATConv if kernel == "sparse" else GATConv)(in_dim, hidden, heads=heads, concat=concat)
+
+
+def _conv(kind: str, in_dim: int, hidden: int, heads: int, gat_kernel: str = "sparse") -> nn.Module:
     width = hidden * heads
     if kind == "gat":
-        return GATConv(in_dim, hidden, heads=heads, concat=True)
+        return _gat(in_dim, hidden, heads, gat_kernel)
     if kind == "gatv2":
         return GATv2Conv(in_dim, hidden, heads=heads, concat=True)
     if kind == "gcn":
@@ -33,14 +38,15 @@ class MeshEncoder(nn.Module):
     .. math:: h^{l+1}_i = \mathrm{Dropout}(\mathrm{ReLU}(\mathrm{Conv}(h^l)_i)) + R^l h^l_i,
 
     Conv = GATConv with `heads` heads of `hidden` features concatenated (or GATv2 / GCN / SAGE);
-    R^l is the identity, or a linear map where the width changes (the first layer)."""
+    R^l is the identity, or a linear map where the width changes (the first layer).
+    `edges` is an edge_index, or for the sparse GAT kernel an AttentionGraph built once per batch."""
 
     def __init__(self, in_dim: int, conv: str = "gat", hidden: int = 128, heads: int = 4, layers: int = 3,
-                 dropout: float = 0.1):
+                 dropout: float = 0.1, gat_kernel: str = "sparse"):
         super().__init__()
         width = hidden * heads
         dims = [in_dim] + [width] * layers
-        self.convs = nn.ModuleList(_conv(conv, dims[i], hidden, heads) for i in range(layers))
+        self.convs = nn.ModuleList(_conv(conv, dims[i], hidden, heads, gat_kernel) for i in range(layers))
         self.skips = nn.ModuleList(nn.Linear(dims[i], width) if dims[i] != width else nn.Identity()
                                    for i in range(layers))
         self.dropout = dropout
@@ -50,10 +56,10 @@ class MeshEncoder(nn.Module):
             if hasattr(m, "reset_parameters"):
                 m.reset_parameters()
 
-    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, edges) -> torch.Tensor:
         h = x
         for conv, skip in zip(self.convs, self.skips):
-            h = F.dropout(F.relu(conv(h, edge_index)), self.dropout, self.training) + skip(h)
+            h = F.dropout(F.relu(conv(h, edges)), self.dropout, self.training) + skip(h)
         return h
 
 
@@ -177,10 +183,10 @@ class MLPDecoder(nn.Module):
 class GATDecoder(nn.Module):
     """Baseline C5: two GAT layers (4 heads of 64, then 1 head of 3) instead of the MLP."""
 
-    def __init__(self, dim: int, dropout: float = 0.1, hidden: int = 64, heads: int = 4):
+    def __init__(self, dim: int, dropout: float = 0.1, hidden: int = 64, heads: int = 4, gat_kernel: str = "sparse"):
         super().__init__()
-        self.c1 = GATConv(dim, hidden, heads=heads, concat=True)
-        self.c2 = GATConv(hidden * heads, 3, heads=1)
+        self.c1 = _gat(dim, hidden, heads, gat_kernel)
+        self.c2 = _gat(hidden * heads, 3, 1, gat_kernel)
         self.dropout = dropout
 
     def forward(self, h, edge_index):
@@ -203,7 +209,7 @@ class HeartUnloadNet(nn.Module):
         W = cfg.width
         broadcast = cfg.fusion == "broadcast"
         self.encoder = MeshEncoder(3 + (N_PARAMS if broadcast else 0), cfg.conv, cfg.hidden, cfg.heads, cfg.layers,
-                                   cfg.dropout)
+                                   cfg.dropout, cfg.gat_kernel)
         regional = cfg.tokens == "regional"
         self.pool = None if cfg.pooling == "none" else MeshPooling(cfg.pooling, regional)
         self.mesh_attn = None if self.pool is None else CrossAttention(W, W, cfg.heads, self.pool.n_tokens)
@@ -215,7 +221,7 @@ class HeartUnloadNet(nn.Module):
         else:
             self.fusion = None
         make_dec = (lambda: MLPDecoder(W, cfg.decoder_hidden, cfg.dropout)) if cfg.decoder == "mlp" else \
-            (lambda: GATDecoder(W, cfg.dropout))
+            (lambda: GATDecoder(W, cfg.dropout, gat_kernel=cfg.gat_kernel))
         self.dec_unloaded = make_dec()
         self.dec_ed = make_dec() if cfg.cycle else None
         self.register_buffer("disp_to_coord", torch.tensor(float(disp_to_coord)))
@@ -242,14 +248,21 @@ class HeartUnloadNet(nn.Module):
             batch = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         B = int(data.num_graphs) if hasattr(data, "num_graphs") and data.num_graphs else 1
         params, region = data.params, data.region
-        d_unl = self.dec_unloaded(self.encode(x, ei, batch, params, region, B), ei)
+        enc_edges = dec_edges = ei
+        if self.cfg.gat_kernel == "sparse" and "gat" in (self.cfg.conv, self.cfg.decoder):
+            graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
+            enc_edges = graph if self.cfg.conv == "gat" else ei
+            dec_edges = graph if self.cfg.decoder == "gat" else ei
+
+        def run(decoder, x_in):
+            return decoder(self.encode(x_in, enc_edges, batch, params, region, B), dec_edges)
+
+        d_unl = run(self.dec_unloaded, x)
         d_ed = d_rev = None
         if cycle:
-            x_unl = x + self.disp_to_coord * d_unl
-            d_ed = self.dec_ed(self.encode(x_unl, ei, batch, params, region, B), ei)
+            d_ed = run(self.dec_ed, x + self.disp_to_coord * d_unl)
         if reverse and cycle and self.cfg.reverse_weight > 0:
-            x_true = x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(x.dtype)
-            d_rev = self.dec_ed(self.encode(x_true, ei, batch, params, region, B), ei)
+            d_rev = run(self.dec_ed, x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(x.dtype))
         return (d_unl, d_ed, d_rev) if reverse else (d_unl, d_ed)
 
 
