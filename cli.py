@@ -389,6 +389,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
           batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
           sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),
+          labelled_share: float = typer.Option(0.25, "--labelled-share",
+                                               help="SR < 1: share of each batch drawn from the labelled cases."),
           split: str = typer.Option("shape", "--split", help="shape (70/30 of shapes) | lovo:P=10 (C=, endo=, epi=) | source."),
           seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset, initialisation and shuffling."),
           local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
@@ -423,8 +425,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         if not is_url(store):  # Ray Train workers run in their own working directory
             store = str(Path(store).resolve())
         run_dir = run_dir.resolve()
-        cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed,
-                          epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size, lr=lr, patience=patience,
+        cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
+                          labelled_share=labelled_share, seed=seed, epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size, lr=lr, patience=patience,
                           bf16=bf16)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")
@@ -563,6 +565,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                     threads: int = typer.Option(None, "--threads", help="torch CPU threads (default: torch's)."),
                     gat_kernel: str = typer.Option("sparse", "--gat-kernel",
                                                    help="sparse (one SpMM per GAT layer) | pyg (GATConv)."),
+                    mesh: Path = typer.Option(None, "--mesh", help="Time on this LV mesh (mm) instead of meshing one with gmsh."),
                     as_json: bool = typer.Option(False, "--json")):
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
     from trainer.bench import bench_model
@@ -582,7 +585,10 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
             if threads < 1:
                 raise ValueError("--threads must be ≥ 1")
             torch.set_num_threads(threads)
-        r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel)
+        if mesh is not None and not mesh.is_file():
+            raise ValueError(f"--mesh {mesh}: no such file")
+        r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
+                        mesh_path=None if mesh is None else str(mesh))
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:

@@ -76,3 +76,23 @@ def test_checkpoint_interchanges_between_kernels(lv_edges):
     torch.testing.assert_close(b[1], a[1], rtol=1e-4, atol=1e-5)
     ident = [TrainConfig(store="s", model=replace(small, gat_kernel=k)).identity() for k in ("pyg", "sparse")]
     assert ident[0] == ident[1]
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("bf16", [False, True])
+def test_cuda_kernel_matches_pyg(lv_edges, bf16):
+    """On a GPU (cuSPARSE SpMM / SDDMM), fp32 and under bf16 autocast (the sparse product runs in fp32)."""
+    edge_index, n = lv_edges
+    dev = torch.device("cuda")
+    torch.manual_seed(3)
+    ref = GATConv(6, 16, heads=4).to(dev)
+    ours = SparseGATConv(6, 16, heads=4).to(dev)
+    ours.load_state_dict(ref.state_dict())
+    x = torch.randn(n, 6, device=dev)
+    ei = edge_index.to(dev)
+    with torch.autocast("cuda", dtype=torch.bfloat16, enabled=bf16):
+        ya, yb = ref(x, ei), ours(x, AttentionGraph.from_edge_index(ei, n))
+        (yb.float().square().sum()).backward()
+    tol = dict(rtol=3e-2, atol=3e-2) if bf16 else dict(rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(yb.float(), ya.float(), **tol)
+    assert all(torch.isfinite(p.grad).all() for p in ours.parameters())

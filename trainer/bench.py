@@ -33,11 +33,10 @@ def _timed(fn, device, min_s: float = 1.0, min_runs: int = 3, max_runs: int = 20
 
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
                 train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0,
-                gat_kernel: str = "sparse") -> dict:
+                gat_kernel: str = "sparse", mesh_path: str | None = None) -> dict:
+    """mesh_path: time on this mesh (any format storage.meshfiles reads, mm) instead of meshing shape 0
+    with gmsh for `nodes` nodes (lets a GPU host without gmsh run the benchmark)."""
     from torch_geometric.data import Batch
-
-    from solver.meshing import mesh_lv
-    from solver.shape_model import lv_shape
 
     tune_allocator()
     dev = torch.device(device)
@@ -50,7 +49,15 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     if cfg.kind != "gnn":
         raise TrainerError("bench model times the graph network; choose a gnn --config")
     torch.manual_seed(seed)
-    mesh = mesh_lv(lv_shape(0, seed), nodes)
+    if mesh_path is not None:
+        from storage.meshfiles import read_mesh
+
+        mesh = read_mesh(mesh_path)
+    else:
+        from solver.meshing import mesh_lv
+        from solver.shape_model import lv_shape
+
+        mesh = mesh_lv(lv_shape(0, seed), nodes)
     feat = mesh_features(mesh)
     c = feat.ed_mm.mean(axis=0)
     norm = Normalisation(tuple(c), float(np.sqrt(((feat.ed_mm - c) ** 2).sum(axis=1).mean())), 1.0,

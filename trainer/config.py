@@ -118,6 +118,7 @@ class TrainConfig:
     model: ModelConfig = PAPER
     split: str = "shape"
     sr: float = 1.0  # supervision ratio: fraction of training cases whose label is used
+    labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
     seed: int = 0
     epochs: int = 500
     batch_size: int = 16
@@ -137,6 +138,8 @@ class TrainConfig:
             raise TrainerError(f"--epochs must be ≥ 1, got {self.epochs}")
         if self.batch_size < 1:
             raise TrainerError(f"--batch-size must be ≥ 1, got {self.batch_size}")
+        if not 0 <= self.labelled_share < 1:
+            raise TrainerError(f"--labelled-share must be in [0, 1), got {self.labelled_share}")
         if self.seed < 0:
             raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
 

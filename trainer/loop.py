@@ -20,6 +20,7 @@ from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_ch
 from .config import TrainConfig, TrainerError
 from .data import DataBundle, build_training_data
 from .model import build_model, count_parameters, loss_terms
+from .sampling import MixedBatchSampler, labelled_per_batch
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_sup", "train_cycle", "val_loss", "val_md_mm", "lr", "epoch_s",
                   "graphs_per_s")
@@ -65,22 +66,30 @@ def _move(batch, device):
 
 
 def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
+    """Training loader (mixed labelled/unlabelled batches when SR < 1, see trainer.sampling),
+    its sampler (set_epoch) and the validation loader."""
     from torch.utils.data import RandomSampler
     from torch.utils.data.distributed import DistributedSampler
     from torch_geometric.loader import DataLoader
 
-    if dist.world > 1:
-        train_sampler = DistributedSampler(bundle.train, num_replicas=dist.world, rank=dist.rank, shuffle=True,
-                                           seed=cfg.seed)
-        val_sampler = DistributedSampler(bundle.val, num_replicas=dist.world, rank=dist.rank, shuffle=False) \
-            if bundle.val else None
-    else:
-        gen = torch.Generator()
-        train_sampler = RandomSampler(bundle.train, generator=gen)
-        train_sampler.set_epoch = lambda epoch: gen.manual_seed(cfg.seed * 100003 + epoch)  # type: ignore[attr-defined]
-        val_sampler = None
     pin = dist.device.type == "cuda"
-    train = DataLoader(bundle.train, batch_size=cfg.batch_size, sampler=train_sampler, pin_memory=pin)
+    flags = [bool(g.labelled.item()) for g in bundle.train]
+    n_lab = labelled_per_batch(cfg.batch_size, cfg.sr, cfg.labelled_share)
+    if n_lab and any(flags) and not all(flags):
+        train_sampler = MixedBatchSampler([i for i, f in enumerate(flags) if f], [i for i, f in enumerate(flags) if not f],
+                                          cfg.batch_size, n_lab, cfg.seed, dist.rank, dist.world)
+        train = DataLoader(bundle.train, batch_sampler=train_sampler, pin_memory=pin)
+    else:
+        if dist.world > 1:
+            train_sampler = DistributedSampler(bundle.train, num_replicas=dist.world, rank=dist.rank, shuffle=True,
+                                               seed=cfg.seed)
+        else:
+            gen = torch.Generator()
+            train_sampler = RandomSampler(bundle.train, generator=gen)
+            train_sampler.set_epoch = lambda epoch: gen.manual_seed(cfg.seed * 100003 + epoch)  # type: ignore[attr-defined]
+        train = DataLoader(bundle.train, batch_size=cfg.batch_size, sampler=train_sampler, pin_memory=pin)
+    val_sampler = DistributedSampler(bundle.val, num_replicas=dist.world, rank=dist.rank, shuffle=False) \
+        if bundle.val and dist.world > 1 else None
     val = DataLoader(bundle.val, batch_size=cfg.batch_size, sampler=val_sampler, shuffle=False, pin_memory=pin) \
         if bundle.val else None
     return train, train_sampler, val
@@ -215,6 +224,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases "
                  f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
                  f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}")
+        if isinstance(sampler, MixedBatchSampler):
+            dist.log(f"batches of {sampler.n_labelled} labelled + {sampler.n_unlabelled} unlabelled cases "
+                     f"({len(sampler)} per epoch and process)")
     epoch = start_epoch
     for epoch in range(start_epoch, cfg.epochs):
         if stopped:
