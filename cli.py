@@ -599,6 +599,10 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                f"{r['gat_kernel']} GAT kernel")
     for row in r["inference"]:
         typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} ms per batch)")
+    pr = r["prepared_single"]
+    how = "CUDA graph replay" if pr["cuda_graph"] else ("eager; capture failed: " + pr["capture_error"]
+                                                       if pr["capture_error"] else "eager")
+    typer.echo(f"inference batch    1, mesh prepared once ({how}): {pr['ms_per_case']:8.3f} ms per case")
     typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "
                f"{r['train_graphs_per_s']:.1f} graphs/s")
 

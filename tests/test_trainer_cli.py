@@ -132,7 +132,12 @@ def test_bench_model_small():
     out = json.loads(r.output.strip().splitlines()[-1])
     assert [row["batch"] for row in out["inference"]] == [1, 2]
     assert out["train_graphs_per_s"] > 0 and out["parameters"] > 1e6
+    assert out["gat_kernel"] == "sparse" and out["prepared_single"]["ms_per_case"] > 0
+    r = run("bench", "model", "--nodes", 120, "--batches", "1", "--train-batch", 1, "--gat-kernel", "pyg", "--json")
+    assert r.exit_code == 0 and json.loads(r.output.strip().splitlines()[-1])["gat_kernel"] == "pyg"
     assert_bad_input(run("bench", "model", "--batches", "1,x"), "--batches")
+    assert_bad_input(run("bench", "model", "--gat-kernel", "dense"), "--gat-kernel")
+    assert_bad_input(run("bench", "model", "--mesh", "/nonexistent/lv.vtu"), "no such file")
     import torch
 
     if not torch.cuda.is_available():

@@ -96,3 +96,41 @@ def test_cuda_kernel_matches_pyg(lv_edges, bf16):
     tol = dict(rtol=3e-2, atol=3e-2) if bf16 else dict(rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(yb.float(), ya.float(), **tol)
     assert all(torch.isfinite(p.grad).all() for p in ours.parameters())
+
+
+def _prepared_setup(device):
+    from trainer.data import Normalisation, case_graph
+    from trainer.static import PreparedCase
+
+    m = lv_mesh(1)
+    f = mesh_features(m)
+    norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
+    batch = Batch.from_data_list([case_graph(f, [8.0, 150.0, 65.0, -65.0], norm)]).to(device)
+    torch.manual_seed(4)
+    model = build_model(replace(named_config("paper"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8),
+                        0.1).to(device).eval()
+    return model, batch, PreparedCase(model, batch)
+
+
+def test_prepared_case_matches_the_model():
+    """Mesh-only work done once; new coordinates/parameters copied in give the model's answer."""
+    model, batch, run = _prepared_setup("cpu")
+    x2, p2 = batch.x + 0.01 * torch.randn_like(batch.x), torch.rand(1, 4)
+    other = batch.clone()
+    other.x, other.params = x2, p2
+    with torch.no_grad():
+        expect = model(other, cycle=False)[0]
+    torch.testing.assert_close(run(x2, p2), expect)
+    assert run.cuda_graph is None  # CPU: eager with the prepared graph
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_prepared_case_cuda_graph_replays():
+    model, batch, run = _prepared_setup("cuda")
+    assert run.cuda_graph is not None, run.capture_error
+    x2 = batch.x + 0.01 * torch.randn_like(batch.x)
+    other = batch.clone()
+    other.x = x2
+    with torch.no_grad():
+        expect = model(other, cycle=False)[0]
+    torch.testing.assert_close(run(x2), expect, rtol=1e-4, atol=1e-5)

@@ -81,6 +81,12 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
 
         s = _timed(infer, dev, min_s)
         rows.append({"batch": b, "ms_per_batch": s * 1e3, "ms_per_case": s * 1e3 / b})
+    from .static import PreparedCase
+
+    prepared = PreparedCase(model, Batch.from_data_list([graph()]).to(dev), bf16=bf16)
+    s = _timed(prepared, dev, min_s)
+    prepared_row = {"ms_per_case": s * 1e3, "cuda_graph": prepared.cuda_graph is not None,
+                    "capture_error": prepared.capture_error}
     tb = train_batch or (128 if dev.type == "cuda" else 32)
     data = Batch.from_data_list([graph() for _ in range(tb)]).to(dev)
     model.train()
@@ -97,5 +103,5 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
-            "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows, "train_batch": tb,
+            "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows, "prepared_single": prepared_row, "train_batch": tb,
             "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle}

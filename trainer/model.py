@@ -237,11 +237,12 @@ class HeartUnloadNet(nn.Module):
             h = self.fusion(h, batch, self.param_encoder(params), None)
         return h
 
-    def forward(self, data, cycle: bool | None = None, reverse: bool = False):
+    def forward(self, data, cycle: bool | None = None, reverse: bool = False, graph: AttentionGraph | None = None):
         """Returns (d_unl [N,3], d_ed [N,3] or None), both normalised displacements; with
         reverse=True a third item, d_rev [N,3] or None: the reverse decoder applied to the true
         unloaded mesh x̂_ED + ρ y (labelled graphs; where y is withheld the input is the ED mesh and
-        the output is ignored by the loss). Computed only when cfg.reverse_weight > 0."""
+        the output is ignored by the loss). Computed only when cfg.reverse_weight > 0.
+        graph: data.edge_index already as an AttentionGraph (repeated inference on one mesh)."""
         cycle = self.cfg.cycle if cycle is None else (cycle and self.cfg.cycle)
         x, ei, batch = data.x, data.edge_index, data.batch
         if batch is None:
@@ -250,7 +251,8 @@ class HeartUnloadNet(nn.Module):
         params, region = data.params, data.region
         enc_edges = dec_edges = ei
         if self.cfg.gat_kernel == "sparse" and "gat" in (self.cfg.conv, self.cfg.decoder):
-            graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
+            if graph is None:
+                graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
             enc_edges = graph if self.cfg.conv == "gat" else ei
             dec_edges = graph if self.cfg.decoder == "gat" else ei
 
