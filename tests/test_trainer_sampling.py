@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from trainer.config import TrainConfig, TrainerError
+from trainer.config import ModelConfig, TrainConfig, TrainerError, named_config
 from trainer.sampling import MixedBatchSampler, labelled_per_batch
 
 
@@ -38,3 +38,11 @@ def test_ranks_get_disjoint_shards_and_equal_batch_counts():
     assert len(per_rank[0]) == len(per_rank[1])
     shards = [{i for b in batches for i in b[1:]} for batches in per_rank]
     assert not shards[0] & shards[1] and shards[0] | shards[1] == set(unl)
+
+
+def test_cycle_weight_ramps_up():
+    assert named_config("paper").cycle_weight(0) == 0.2
+    r2 = named_config("R2")
+    assert [round(r2.cycle_weight(e), 3) for e in (0, 4, 9, 30)] == [0.02, 0.1, 0.2, 0.2]
+    with pytest.raises(TrainerError):
+        ModelConfig(cycle_rampup_epochs=-1)

@@ -69,6 +69,8 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         return case_graph(feat, p, norm, feat.ed_mm + rng.normal(0, 1, feat.ed_mm.shape), True)
 
     model = build_model(cfg, 0.1).to(dev)
+    if dev.type == "cuda":
+        torch.set_float32_matmul_precision("high")  # TF32 for fp32 matmuls, as the training loop
     amp = torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=bool(bf16 and dev.type == "cuda"))
     rows = []
     model.eval()
@@ -103,5 +105,6 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
-            "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows, "prepared_single": prepared_row, "train_batch": tb,
+            "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows,
+            "prepared_single": prepared_row, "train_batch": tb,
             "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle}

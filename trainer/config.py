@@ -41,6 +41,7 @@ class ModelConfig:
     cycle: bool = True
     lambda_cycle: float = 0.2
     reverse_weight: float = 0.0  # λ_rev: also supervise the reverse decoder on labelled pairs (0 = paper)
+    cycle_rampup_epochs: int = 0  # λ_cycle grows linearly over the first epochs (0 = from the start, the paper)
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
     kind: str = "gnn"
@@ -58,10 +59,16 @@ class ModelConfig:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
         if self.hidden < 1 or self.heads < 1 or self.layers < 1:
             raise TrainerError("model hidden, heads and layers must be ≥ 1")
-        if self.reverse_weight < 0 or self.lambda_cycle < 0:
-            raise TrainerError("loss weights lambda_cycle and reverse_weight must be ≥ 0")
+        if self.reverse_weight < 0 or self.lambda_cycle < 0 or self.cycle_rampup_epochs < 0:
+            raise TrainerError("loss weights lambda_cycle, reverse_weight and cycle_rampup_epochs must be ≥ 0")
         if not 0 <= self.dropout < 1:
             raise TrainerError(f"dropout must be in [0, 1), got {self.dropout}")
+
+    def cycle_weight(self, epoch: int) -> float:
+        """λ_cycle in training epoch `epoch` (0-based): λ·min(1, (epoch + 1)/rampup)."""
+        if self.cycle_rampup_epochs <= 0:
+            return self.lambda_cycle
+        return self.lambda_cycle * min(1.0, (epoch + 1) / self.cycle_rampup_epochs)
 
     @property
     def width(self) -> int:
@@ -96,10 +103,13 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # ours: the reverse (unloaded→ED) decoder also learns from the labelled pairs, so the cycle term
     # on unlabelled cases checks the unloading against a trained forward map (matters at low SR)
     "R1": replace(PAPER, reverse_weight=1.0),
+    # R1 with λ_cycle ramped up over the first 10 epochs (the cycle term starts once the decoders
+    # have learnt something from the labelled pairs)
+    "R2": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
-               "R1 (reverse decoder supervised too) | pca")
+               "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | pca")
 
 
 def named_config(name: str) -> ModelConfig:

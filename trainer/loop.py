@@ -211,6 +211,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         if dist.is_main:
             dist.log(f"resuming {run_dir} from epoch {start_epoch} (best validation {best_val:.4g} at epoch {best_epoch})")
     model.to(dist.device)
+    if dist.device.type == "cuda":
+        torch.set_float32_matmul_precision("high")  # TF32 tensor cores for the fp32 dense layers
     for s in opt.state.values():  # optimiser moments follow the model
         for k, v in s.items():
             if isinstance(v, torch.Tensor) and k != "step":
@@ -240,7 +242,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             opt.zero_grad(set_to_none=True)
             with _autocast(cfg, dist.device):
                 d_unl, d_ed, d_rev = wrapped(batch, reverse=True)
-            terms = loss_terms(d_unl, d_ed, batch, cfg.model.lambda_cycle, d_rev, cfg.model.reverse_weight)
+            terms = loss_terms(d_unl, d_ed, batch, cfg.model.cycle_weight(epoch), d_rev, cfg.model.reverse_weight)
             terms["loss"].backward()
             opt.step()
             g = batch.num_graphs
