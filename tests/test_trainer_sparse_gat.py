@@ -134,3 +134,21 @@ def test_prepared_case_cuda_graph_replays():
     with torch.no_grad():
         expect = model(other, cycle=False)[0]
     torch.testing.assert_close(run(x2), expect, rtol=1e-4, atol=1e-5)
+
+
+def test_directed_graph_matches_pyg():
+    """A random directed graph (transpose pattern differs from the pattern)."""
+    g = torch.Generator().manual_seed(5)
+    n = 40
+    edge_index = torch.unique(torch.randint(0, n, (2, 160), generator=g), dim=1)
+    torch.manual_seed(5)
+    ref = GATConv(5, 6, heads=3).double()
+    ours = SparseGATConv(5, 6, heads=3).double()
+    ours.load_state_dict(ref.state_dict())
+    xa = torch.randn(n, 5, dtype=torch.float64, requires_grad=True)
+    xb = xa.detach().clone().requires_grad_()
+    ya, yb = ref(xa, edge_index), ours(xb, edge_index)
+    torch.testing.assert_close(yb, ya, rtol=1e-10, atol=1e-12)
+    ya.pow(2).sum().backward()
+    yb.pow(2).sum().backward()
+    torch.testing.assert_close(xb.grad, xa.grad, rtol=1e-10, atol=1e-12)
