@@ -20,7 +20,6 @@ from torch import Tensor, nn
 from torch_geometric.utils import add_self_loops, remove_self_loops, softmax
 
 
-
 @dataclass(frozen=True)
 class HeadCSR:
     """The head-folded CSR pattern of one graph for `heads` heads, and its transpose.
@@ -90,10 +89,8 @@ class AttentionGraph:
         col = (self.src.unsqueeze(1) * h + ar_h).reshape(-1)[val_perm]
         row = (self.dst.unsqueeze(1) * h + ar_h).reshape(-1)[val_perm]
         size = n * h
-        crow = torch.zeros(size + 1, dtype=torch.long, device=dev)
-        crow[1:] = torch.cumsum(deg.repeat_interleave(h), 0)
         t_perm = torch.argsort(col * size + row)
-        return HeadCSR(size, crow, col, val_perm, _crow(col, size), row[t_perm], t_perm)
+        return HeadCSR(size, _crow(row, size), col, val_perm, _crow(col, size), row[t_perm], t_perm)
 
 
 class _HeadSpMM(torch.autograd.Function):
