@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 
 from .model import HeartUnloadNet
-from .sparse_gat import AttentionGraph
+from .sparse_gat import AttentionGraph, SparseGATConv
 
 
 class PreparedCase:
@@ -24,7 +24,7 @@ class PreparedCase:
         self.graph = None
         if cfg.gat_kernel == "sparse" and "gat" in (cfg.conv, cfg.decoder):
             self.graph = AttentionGraph.from_edge_index(self.data.edge_index, self.data.num_nodes)
-            for h in {cfg.heads, 4, 1}:  # encoder heads; the GAT decoder's 4 and 1
+            for h in {m.heads for m in model.modules() if isinstance(m, SparseGATConv)}:
                 self.graph.heads(h)
         self.cuda_graph = None
         self.capture_error = None
