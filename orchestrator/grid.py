@@ -128,7 +128,8 @@ class SweepSpec:
         g = attrs["grid"]
         return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
                    seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"),
-                   fibres=attrs.get("fibres", "laplace"), meshes=tuple(m["path"] for m in attrs.get("meshes", [])), mesh_units=attrs.get("mesh_units", "mm"))
+                   fibres=attrs.get("fibres", "laplace"), meshes=tuple(m["path"] for m in attrs.get("meshes", [])),
+                   mesh_units=attrs.get("mesh_units", "mm"))
 
     def conflicts(self, attrs: dict) -> list[str]:
         """How this request differs from the store's (empty: it may resume that store)."""

@@ -52,7 +52,8 @@ def robust_fidelity(fidelity):
                    min_load_step=fidelity.min_load_step * ROBUST_MIN_STEP_FACTOR)
 
 
-def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True, fibres: str = "laplace") -> dict:
+def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True,
+             fibres: str = "laplace") -> dict:
     """One training pair: inverse then forward FE. A solver failure (SolveError, or an inverted
     trial geometry) is retried once with `robust_fidelity`; if that fails too the result says so
     (ok False, reason) — this function does not raise for a case that will not solve.

@@ -23,6 +23,15 @@ def lv_edges():
     return mesh_features(m).edge_index, m.n_nodes
 
 
+def _lv_batch(shape: int) -> Batch:
+    """One unlabelled case on a real LV mesh, as a batch of one graph."""
+    from trainer.data import Normalisation, case_graph
+
+    m = lv_mesh(shape)
+    norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
+    return Batch.from_data_list([case_graph(mesh_features(m), [8.0, 150.0, 65.0, -65.0], norm)])
+
+
 @pytest.mark.parametrize("heads,out,concat,self_loops", [(4, 16, True, False), (1, 3, True, True), (3, 5, False, False)])
 def test_matches_pyg_gatconv(lv_edges, heads, out, concat, self_loops):
     edge_index, n = lv_edges
@@ -59,12 +68,7 @@ def test_plain_edge_index_and_shared_graph_agree(lv_edges):
 def test_checkpoint_interchanges_between_kernels(lv_edges):
     """A state dict of the pyg-kernel model loads into the sparse one (old checkpoints) and predicts
     the same; the kernel is not part of a run's identity."""
-    from trainer.data import Normalisation, case_graph
-
-    m = lv_mesh(0)
-    f = mesh_features(m)
-    norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
-    batch = Batch.from_data_list([case_graph(f, [8.0, 150.0, 65.0, -65.0], norm)])
+    batch = _lv_batch(0)
     small = replace(named_config("C5"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
     torch.manual_seed(2)
     pyg = build_model(replace(small, gat_kernel="pyg"), 0.1).eval()
@@ -99,13 +103,9 @@ def test_cuda_kernel_matches_pyg(lv_edges, bf16):
 
 
 def _prepared_setup(device):
-    from trainer.data import Normalisation, case_graph
     from trainer.static import PreparedCase
 
-    m = lv_mesh(1)
-    f = mesh_features(m)
-    norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
-    batch = Batch.from_data_list([case_graph(f, [8.0, 150.0, 65.0, -65.0], norm)]).to(device)
+    batch = _lv_batch(1).to(device)
     torch.manual_seed(4)
     model = build_model(replace(named_config("paper"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8),
                         0.1).to(device).eval()

@@ -213,7 +213,8 @@ def read_store(location, keys: list | None = None) -> StoreCases:
 def store_fingerprint(attrs: dict, features: dict) -> dict:
     """What ties a run to its store: grid, fidelity, seed, base, and the node count of each shape."""
     return {"grid": attrs.get("grid"), "fidelity": attrs.get("fidelity"), "seed": attrs.get("seed"),
-            "base": attrs.get("base"), "fibres": attrs.get("fibres", "laplace"), "mesh_nodes": attrs.get("mesh_nodes"),
+            "base": attrs.get("base"), "fibres": attrs.get("fibres", "laplace"),
+            "mesh_nodes": attrs.get("mesh_nodes"),
             "shape_nodes": {str(s): int(f.ed_mm.shape[0]) for s, f in sorted(features.items())}}
 
 

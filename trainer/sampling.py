@@ -22,6 +22,14 @@ def labelled_per_batch(batch_size: int, sr: float, labelled_share: float) -> int
     return int(min(batch_size - 1, max(1, round(batch_size * max(sr, labelled_share)))))
 
 
+def _permutation_stream(items: list, n: int, rng: np.random.Generator) -> list:
+    """n items: consecutive random permutations of `items`, each used up before the next."""
+    out = []
+    while len(out) < n:
+        out.extend(items[i] for i in rng.permutation(len(items)))
+    return out[:n]
+
+
 class MixedBatchSampler:
     """Yields lists of dataset indices: n_labelled labelled + (batch_size − n_labelled) unlabelled."""
 
@@ -40,20 +48,13 @@ class MixedBatchSampler:
     def __len__(self) -> int:
         return math.ceil(math.ceil(len(self.unlabelled) / self.world) / self.n_unlabelled)
 
-    def _stream(self, items: list, n: int, rng: np.random.Generator) -> list:
-        """n items: consecutive random permutations of `items`, each used up before the next."""
-        out = []
-        while len(out) < n:
-            out.extend(items[i] for i in rng.permutation(len(items)))
-        return out[:n]
-
     def __iter__(self):
         n_batches = len(self)
         order = np.random.default_rng([self.seed, self.epoch, 7]).permutation(len(self.unlabelled))  # same on all ranks
         shard = [self.unlabelled[i] for i in order[self.rank::self.world]] or list(self.unlabelled)
         rng = np.random.default_rng([self.seed, self.epoch, 11, self.rank])
         unl = (shard * math.ceil(n_batches * self.n_unlabelled / len(shard)))[: n_batches * self.n_unlabelled]
-        lab = self._stream(self.labelled, n_batches * self.n_labelled, rng)
+        lab = _permutation_stream(self.labelled, n_batches * self.n_labelled, rng)
         for b in range(n_batches):
             yield (lab[b * self.n_labelled:(b + 1) * self.n_labelled]
                    + unl[b * self.n_unlabelled:(b + 1) * self.n_unlabelled])
