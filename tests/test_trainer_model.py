@@ -47,12 +47,12 @@ def test_output_shapes_every_config(name, graphs):
     cfg = small(named_config(name))
     model = build_model(cfg, 0.1)
     batch = Batch.from_data_list(graphs)
-    d_unl, d_ed = model(batch)
+    d_unl, d_ed, d_rev = model(batch, reverse=True)  # as the training loop calls it
     assert d_unl.shape == (batch.num_nodes, 3)
     assert (d_ed is None) == (not cfg.cycle)
     if d_ed is not None:
         assert d_ed.shape == (batch.num_nodes, 3)
-    terms = loss_terms(d_unl, d_ed, batch, cfg.lambda_cycle)
+    terms = loss_terms(d_unl, d_ed, batch, cfg.lambda_cycle, d_rev, cfg.reverse_weight)
     terms["loss"].backward()
     assert all(p.grad is not None for p in model.parameters()), "every parameter takes part (DDP needs it)"
 
@@ -190,6 +190,15 @@ def test_reverse_term_supervises_the_reverse_decoder(graphs):
     torch.testing.assert_close(terms["loss"], terms["sup"] + cfg.lambda_cycle * terms["cycle"] + terms["reverse"])
     assert build_model(small(named_config("paper")), 0.1)(batch, reverse=True)[2] is None
 
+    mixed = [graphs[0], graphs[1].clone()]
+    mixed[1].y = torch.full_like(mixed[1].y, float("nan"))
+    mixed[1].labelled = torch.tensor([False])
+    mb = Batch.from_data_list(mixed)
+    with torch.no_grad():
+        d_rev_mixed = model(mb, reverse=True)[2]
+    n0 = graphs[0].num_nodes
+    torch.testing.assert_close(d_rev_mixed, by_hand[:n0])  # the labelled graph's nodes only
+
     hidden = [g.clone() for g in graphs]
     for h in hidden:
         h.y = torch.full_like(h.y, float("nan"))
@@ -197,4 +206,31 @@ def test_reverse_term_supervises_the_reverse_decoder(graphs):
     hb = Batch.from_data_list(hidden)
     d_unl, d_ed, d_rev = model(hb, reverse=True)
     terms = loss_terms(d_unl, d_ed, hb, cfg.lambda_cycle, d_rev, cfg.reverse_weight)
+    assert d_rev.shape == (0, 3)
     assert float(terms["reverse"].detach()) == 0.0 and torch.isfinite(terms["loss"])
+    terms["loss"].backward()  # every reverse-decoder weight still gets a (zero) gradient, as DDP needs
+    assert all(p.grad is not None for p in model.dec_ed.parameters())
+
+
+def test_unloading_only_cycle_gradient(graphs):
+    """cycle_grad="unloading" (R3): same outputs as the shared pass; the cycle term's gradient
+    reaches the unloading decoder exactly as before (through the reconstruction pass's input) but
+    not the reverse decoder."""
+    torch.manual_seed(7)
+    cfg = replace(small(named_config("R3")), dropout=0.0)  # train mode, identical forwards
+    r3 = build_model(cfg, 0.1).train()
+    both = build_model(replace(cfg, cycle_grad="both"), 0.1).train()
+    both.load_state_dict(r3.state_dict())
+    batch = Batch.from_data_list(graphs)
+    grads = {}
+    for name, model in (("r3", r3), ("both", both)):
+        d_unl, d_ed = model(batch)
+        (d_unl + d_ed).pow(2).mean().backward()
+        grads[name] = (d_ed.detach(), {n: p.grad for n, p in model.named_parameters()})
+    torch.testing.assert_close(grads["r3"][0], grads["both"][0])
+    g3, gb = grads["r3"][1], grads["both"][1]
+    for n in g3:
+        if n.startswith("dec_unloaded."):
+            torch.testing.assert_close(g3[n], gb[n])
+        if n.startswith("dec_ed."):
+            assert g3[n] is None and float(gb[n].abs().sum()) > 0

@@ -23,6 +23,11 @@ class ModelConfig:
             appended to the node input; no global encoder)
     decoder: mlp | gat
     cycle: run the shared encoder on the predicted unloaded mesh and decode back to ED
+    cycle_grad: where the cycle term's gradient goes — both (the paper: the unloading path and the
+            ED-reconstruction pass alike) | unloading (the reconstruction pass is a fixed teacher for
+            that term: its weights get no cycle gradient, only the unloading prediction moves, so the
+            two maps cannot co-adapt to agree on a wrong unloading; the reverse decoder then learns
+            from the labelled pairs alone — use with reverse_weight > 0)
     gat_kernel: how GAT layers sum over neighbours — sparse (one sparse-matrix product per layer,
             trainer.sparse_gat; the default) | pyg (torch_geometric's GATConv). Same mathematics and
             parameter names: a checkpoint loads with either
@@ -42,6 +47,7 @@ class ModelConfig:
     lambda_cycle: float = 0.2
     reverse_weight: float = 0.0  # λ_rev: also supervise the reverse decoder on labelled pairs (0 = paper)
     cycle_rampup_epochs: int = 0  # λ_cycle grows linearly over the first epochs (0 = from the start, the paper)
+    cycle_grad: str = "both"
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
     kind: str = "gnn"
@@ -53,7 +59,8 @@ class ModelConfig:
         object.__setattr__(self, "decoder_hidden", tuple(int(v) for v in self.decoder_hidden))
         choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                    "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
-                   "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg")}
+                   "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
+                   "cycle_grad": ("both", "unloading")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
@@ -61,6 +68,8 @@ class ModelConfig:
             raise TrainerError("model hidden, heads and layers must be ≥ 1")
         if self.reverse_weight < 0 or self.lambda_cycle < 0 or self.cycle_rampup_epochs < 0:
             raise TrainerError("loss weights lambda_cycle, reverse_weight and cycle_rampup_epochs must be ≥ 0")
+        if self.cycle_grad == "unloading" and self.cycle and self.reverse_weight <= 0:
+            raise TrainerError("cycle_grad 'unloading' needs reverse_weight > 0 (the reverse decoder would never learn)")
         if not 0 <= self.dropout < 1:
             raise TrainerError(f"dropout must be in [0, 1), got {self.dropout}")
 
@@ -106,10 +115,14 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # R1 with λ_cycle ramped up over the first 10 epochs (the cycle term starts once the decoders
     # have learnt something from the labelled pairs)
     "R2": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10),
+    # R2 with the reconstruction pass as a fixed teacher for the cycle term (stop-gradient): the
+    # cycle moves only the unloading prediction; the reverse decoder learns from labelled pairs only
+    "R3": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading"),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
-               "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | pca")
+               "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
+               "R3 (R2, cycle gradient to the unloading only) | pca")
 
 
 def named_config(name: str) -> ModelConfig:

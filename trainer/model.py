@@ -201,6 +201,8 @@ class HeartUnloadNet(nn.Module):
     d_ed  = Dec_ed(encode(x̂_ED + ρ d_unl, p))                (normalised x_ED − X̂; ρ = disp/coord scale)
     loss  = MSE(d_unl, y)[labelled] + λ_cycle · MSE(d_unl + d_ed, 0)   (= reconstructed ED − ED)
             [+ λ_rev · MSE(Dec_ed(encode(x̂_ED + ρ y, p)), −y)[labelled]  when reverse_weight λ_rev > 0]
+    With cycle_grad = "unloading" the d_ed pass runs on detached weights: the cycle term moves
+    d_unl only (through the frozen pass's input), never Dec_ed or the encoder's second use.
     """
 
     def __init__(self, cfg: ModelConfig, disp_to_coord: float = 0.1):
@@ -237,40 +239,71 @@ class HeartUnloadNet(nn.Module):
             h = self.fusion(h, batch, self.param_encoder(params), None)
         return h
 
-    def forward(self, data, cycle: bool | None = None, reverse: bool = False, graph: AttentionGraph | None = None):
+    def forward(self, data, cycle: bool | None = None, reverse: bool = False, graph: AttentionGraph | None = None,
+                *, _reconstruct_from: torch.Tensor | None = None):
         """Returns (d_unl [N,3], d_ed [N,3] or None), both normalised displacements; with
-        reverse=True a third item, d_rev [N,3] or None: the reverse decoder applied to the true
-        unloaded mesh x̂_ED + ρ y (labelled graphs; where y is withheld the input is the ED mesh and
-        the output is ignored by the loss). Computed only when cfg.reverse_weight > 0.
-        graph: data.edge_index already as an AttentionGraph (repeated inference on one mesh)."""
+        reverse=True a third item, d_rev [N_lab,3] or None: the reverse decoder applied to the true
+        unloaded meshes x̂_ED + ρ y of the labelled graphs only (their nodes in batch order; [0,3]
+        when none is labelled). Computed only when cfg.reverse_weight > 0.
+        graph: data.edge_index already as an AttentionGraph (repeated inference on one mesh).
+        _reconstruct_from: internal — only the reconstruction pass Dec_ed(encode(·)), which the
+        cycle_grad="unloading" configuration runs with detached weights."""
         cycle = self.cfg.cycle if cycle is None else (cycle and self.cfg.cycle)
         x, ei, batch = data.x, data.edge_index, data.batch
         if batch is None:
             batch = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         B = int(data.num_graphs) if hasattr(data, "num_graphs") and data.num_graphs else 1
         params, region = data.params, data.region
-        enc_edges = dec_edges = ei
-        if self.cfg.gat_kernel == "sparse" and "gat" in (self.cfg.conv, self.cfg.decoder):
-            if graph is None:
-                graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
-            enc_edges = graph if self.cfg.conv == "gat" else ei
-            dec_edges = graph if self.cfg.decoder == "gat" else ei
-
-        def run(decoder, x_in):
-            return decoder(self.encode(x_in, enc_edges, batch, params, region, B), dec_edges)
-
-        d_unl = run(self.dec_unloaded, x)
+        if graph is None and self._uses_attention_graph:
+            graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
+        if _reconstruct_from is not None:
+            return self._run(self.dec_ed, _reconstruct_from, ei, graph, batch, params, region, B)
+        d_unl = self._run(self.dec_unloaded, x, ei, graph, batch, params, region, B)
         d_ed = d_rev = None
         if cycle:
-            d_ed = run(self.dec_ed, x + self.disp_to_coord * d_unl)
+            x_unl = x + self.disp_to_coord * d_unl
+            if self.cfg.cycle_grad == "unloading" and self.training:
+                frozen = {name: p.detach() for name, p in self.named_parameters()}
+                d_ed = torch.func.functional_call(self, frozen, (data,), {"graph": graph, "_reconstruct_from": x_unl})
+            else:
+                d_ed = self._run(self.dec_ed, x_unl, ei, graph, batch, params, region, B)
         if reverse and cycle and self.cfg.reverse_weight > 0:
-            d_rev = run(self.dec_ed, x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(x.dtype))
+            d_rev = self._reverse_on_labelled(data, batch, B)
         return (d_unl, d_ed, d_rev) if reverse else (d_unl, d_ed)
+
+    @property
+    def _uses_attention_graph(self) -> bool:
+        return self.cfg.gat_kernel == "sparse" and "gat" in (self.cfg.conv, self.cfg.decoder)
+
+    def _run(self, decoder, x_in, ei, graph, batch, params, region, B: int):
+        enc_edges = graph if graph is not None and self.cfg.conv == "gat" else ei
+        dec_edges = graph if graph is not None and self.cfg.decoder == "gat" else ei
+        return decoder(self.encode(x_in, enc_edges, batch, params, region, B), dec_edges)
+
+    def _reverse_on_labelled(self, data, batch, B: int):
+        """Dec_ed(encode(x̂_ED + ρ y)) on the labelled graphs' sub-batch (the loss ignores the others)."""
+        lab = data.labelled.reshape(-1)[:B].to(torch.bool)
+        n_lab = int(lab.sum())
+        if n_lab == 0:  # a zero that still touches Dec_ed, so DDP sees a gradient for every weight
+            touch = sum(p.sum() for p in self.dec_ed.parameters()) * 0.0
+            return touch.expand(0, 3)
+        node = lab[batch]
+        x_true = data.x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(data.x.dtype)
+        if n_lab == B:
+            sub_ei, sub_batch, params, region = data.edge_index, batch, data.params, data.region
+        else:
+            new_id = torch.cumsum(node.to(torch.long), 0) - 1
+            e = node[data.edge_index[0]]  # edges never cross graphs
+            sub_ei = new_id[data.edge_index[:, e]]
+            sub_batch = (torch.cumsum(lab.to(torch.long), 0) - 1)[batch[node]]
+            params, region, x_true = data.params[lab], data.region[node], x_true[node]
+        graph = AttentionGraph.from_edge_index(sub_ei, x_true.shape[0]) if self._uses_attention_graph else None
+        return self._run(self.dec_ed, x_true, sub_ei, graph, sub_batch, params, region, n_lab)
 
 
 def loss_terms(d_unl, d_ed, data, lambda_cycle: float, d_rev=None, reverse_weight: float = 0.0) -> dict:
     """Supervised MSE over the nodes of labelled graphs (0 when none), cycle MSE over all nodes,
-    and (d_rev given) the reverse decoder's supervised MSE against −y on labelled nodes."""
+    and (d_rev given: one row per labelled node) the reverse decoder's MSE against −y."""
     node_lab = data.labelled[data.batch] if data.batch is not None else data.labelled.expand(d_unl.shape[0])
     any_lab = bool(node_lab.any())
     if any_lab:
@@ -284,8 +317,8 @@ def loss_terms(d_unl, d_ed, data, lambda_cycle: float, d_rev=None, reverse_weigh
         cyc = (d_unl.float() + d_ed.float()).pow(2).mean()
         total = sup + lambda_cycle * cyc
     rev = torch.zeros((), device=d_unl.device)
-    if d_rev is not None:
-        rev = F.mse_loss(d_rev[node_lab].float(), -data.y[node_lab]) if any_lab else d_rev.float().sum() * 0.0
+    if d_rev is not None:  # d_rev holds the labelled graphs' nodes only
+        rev = F.mse_loss(d_rev.float(), -data.y[node_lab]) if any_lab else d_rev.float().sum() * 0.0
         total = total + reverse_weight * rev
     return {"loss": total, "sup": sup, "cycle": cyc, "reverse": rev, "labelled_nodes": int(node_lab.sum())}
 
