@@ -660,7 +660,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
         table.add_row(r["config"], *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
     con = Console(width=160)
     con.print(table)
-    for name, rivals in (("paper", ["A4", "pca"]), ("paper", ["A1"]), ("R1", ["A1"]), ("R2", ["A1"])):
+    for name, rivals in (("paper", ["A4", "pca"]), ("paper", ["A1"]), ("R1", ["A1"]), ("R2", ["A1"]), ("R3", ["A1"])):
         won = beats(rows, name, rivals)
         present = [o for o in rivals if o in {r["config"] for r in rows}]
         if won and present:
