@@ -617,16 +617,23 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
                        sr: float = typer.Option(1.0, "--sr", help="Supervision ratio for every configuration."),
                        split: str = typer.Option("shape", "--split", help="shape | lovo:P=10 | source."),
                        seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset and training."),
+                       seeds: str = typer.Option("", "--seeds", help="Comma-separated seeds (replaces --seed): the "
+                                                 "ablation once per seed under ROOT/seed<N>, then mean ± SD and "
+                                                 "seed-paired comparisons."),
                        device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
                        as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
     from storage.store import inspect_store
-    from trainer.ablation import TABLE_METRICS, beats, run_ablation
+    from trainer.ablation import TABLE_METRICS, beats, run_ablation, run_ablation_seeds
     from trainer.config import PAPER, TrainConfig, TrainerError
     from trainer.splits import parse_split
 
     names = [c.strip() for c in configs.split(",") if c.strip()]
     try:
+        try:
+            seed_list = [int(v) for v in seeds.split(",") if v.strip()]
+        except ValueError:
+            raise TrainerError(f"--seeds must be comma-separated integers, got {seeds!r}") from None
         parse_split(split)
         if device not in ("cpu", "cuda"):
             raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
@@ -640,11 +647,18 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
         if root.exists() and not root.is_dir():
             raise TrainerError(f"--root {root} is a file")
         base = TrainConfig(store=store, model=PAPER, split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size)
-        result = run_ablation(base, names, root, device, log=lambda line: typer.echo(line, err=True))
+        log = lambda line: typer.echo(line, err=True)  # noqa: E731
+        if seed_list:
+            result = run_ablation_seeds(base, names, seed_list, root, device, log)
+        else:
+            result = run_ablation(base, names, root, device, log)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json.dumps(result))
+        return
+    if seed_list:
+        _print_ablation_seeds(result, root)
         return
     from rich.console import Console
     from rich.table import Table
@@ -668,6 +682,36 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
             con.print(f"{name} vs {', '.join(present)}: better on {len(wins)}/{len(TABLE_METRICS)} metrics"
                       + (f" ({', '.join(wins)})" if wins else ""))
     con.print(f"wrote ablation.csv and ablation.json to {root}")
+
+
+def _print_ablation_seeds(result: dict, root: Path) -> None:
+    """Mean ± SD per configuration over the seeds, then the seed-paired comparisons that matter."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from trainer.ablation import TABLE_METRICS
+
+    seeds = ", ".join(str(s) for s in result["seeds"])
+    table = Table(title=f"test split of {result['store']} (split {result['split']}, SR {result['sr']:g}, "
+                        f"≤ {result['epochs']} epochs; seeds {seeds}): mean ± SD over seeds")
+    for col in ("config", *[label for _, label, _ in TABLE_METRICS]):
+        table.add_column(col, justify="left" if col == "config" else "right")
+    for name, stats in result["configs"].items():
+        table.add_row(name, *[f"{stats[k]['mean']:.3f} ± {stats[k]['sd']:.3f}" for k, _, _ in TABLE_METRICS])
+    con = Console(width=160)
+    con.print(table)
+    n = len(result["seeds"])
+    for name, rival in (("paper", "A4"), ("paper", "pca"), ("paper", "A1"), ("R1", "A1"), ("R2", "A1"),
+                        ("R3", "A1")):
+        pair = result["pairs"].get(f"{name} vs {rival}")
+        if pair is None:
+            continue
+        md = pair["md_mm"]
+        wins = sum(pair[k]["better_seeds"] == n for k, _, _ in TABLE_METRICS)
+        con.print(f"{name} vs {rival}: MD better on {md['better_seeds']}/{n} seeds, paired difference "
+                  f"{md['mean_diff']:+.3f} ± {md['sd_diff']:.3f} mm; better on every seed for {wins}/"
+                  f"{len(TABLE_METRICS)} metrics")
+    con.print(f"wrote ablation_seeds.json to {root} (per-seed tables under {root}/seed<N>/)")
 
 
 # --- end of training and evaluation (issue 4) ---

@@ -161,3 +161,20 @@ def test_bench_ablation_table(trained, tmp_path):
     assert again["rows"][0]["md_mm"] == pytest.approx(table["rows"][0]["md_mm"])
     assert_bad_input(run("bench", "ablation", "--store", trained["store"], "--root", tmp_path / "x",
                          "--configs", "paper,B7"), "unknown --config")
+
+
+def test_bench_ablation_over_seeds(trained, tmp_path):
+    """--seeds: one ablation per seed under ROOT/seed<N> (its own split), a mean ± SD table and the
+    summary file; bad seed lists → exit 2 before any training."""
+    root = tmp_path / "seeds"
+    r = run("bench", "ablation", "--store", trained["store"], "--root", root, "--configs", "pca", "--seeds", "0,1")
+    assert r.exit_code == 0, r.output
+    assert "mean ± SD over seeds" in r.output and "pca" in r.output
+    summary = json.loads((root / "ablation_seeds.json").read_text())
+    assert summary["seeds"] == [0, 1] and (root / "seed1" / "ablation.json").is_file()
+    md = [res["rows"][0]["md_mm"] for res in summary["per_seed"]]
+    assert summary["configs"]["pca"]["md_mm"]["mean"] == pytest.approx(sum(md) / 2)
+    for bad, words in (("0,x", "comma-separated integers"), ("2,2", "repeats")):
+        assert_bad_input(run("bench", "ablation", "--store", trained["store"], "--root", tmp_path / "y",
+                             "--configs", "pca", "--seeds", bad), words)
+    assert not (tmp_path / "y").exists()

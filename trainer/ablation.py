@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import statistics
 from dataclasses import replace
 from pathlib import Path
 
@@ -54,6 +55,55 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
         w.writerows(rows)
     (root / "ablation.json").write_text(json.dumps(result, indent=2))
     return result
+
+
+def run_ablation_seeds(base: TrainConfig, configs: list, seeds: list, root: Path, device: str = "cpu",
+                       log=print) -> dict:
+    """run_ablation once per seed (each seed draws its own split, SR subset and initialisation) under
+    root/seed<N>/, then summarise_seeds; writes ablation_seeds.json under root."""
+    if not seeds:
+        raise TrainerError("--seeds is empty")
+    if len(set(seeds)) != len(seeds):
+        raise TrainerError(f"--seeds repeats a seed: {seeds}")
+    root = Path(root)
+    per_seed = []
+    for seed in seeds:
+        log(f"=== seed {seed}")
+        per_seed.append(run_ablation(replace(base, seed=seed), configs, root / f"seed{seed}", device, log))
+    result = summarise_seeds(per_seed)
+    (root / "ablation_seeds.json").write_text(json.dumps(result, indent=2))
+    return result
+
+
+def summarise_seeds(per_seed: list) -> dict:
+    """Mean and sample SD of every metric per configuration over the seeds' ablation results, and for
+    every pair of configurations the seed-paired comparison: on how many seeds the first is better,
+    and the mean ± SD of the paired difference (first − second)."""
+    seeds = [r["seed"] for r in per_seed]
+    by_seed = [{row["config"]: row for row in r["rows"]} for r in per_seed]
+    names = [row["config"] for row in per_seed[0]["rows"]]
+
+    def sd(values):
+        return statistics.stdev(values) if len(values) > 1 else 0.0
+
+    configs = {}
+    for name in names:
+        configs[name] = {key: {"mean": statistics.fmean(rows[name][key] for rows in by_seed),
+                               "sd": sd([rows[name][key] for rows in by_seed])} for key, _, _ in TABLE_METRICS}
+    pairs = {}
+    for a in names:
+        for b in names:
+            if a == b:
+                continue
+            entry = {}
+            for key, _, sense in TABLE_METRICS:
+                diff = [rows[a][key] - rows[b][key] for rows in by_seed]
+                better = sum((d < 0) if sense == "min" else (d > 0) for d in diff)
+                entry[key] = {"better_seeds": better, "mean_diff": statistics.fmean(diff), "sd_diff": sd(diff)}
+            pairs[f"{a} vs {b}"] = entry
+    return {"seeds": seeds, "store": per_seed[0]["store"], "split": per_seed[0]["split"], "sr": per_seed[0]["sr"],
+            "epochs": per_seed[0]["epochs"], "cases": [r["rows"][0]["cases"] for r in per_seed],
+            "configs": configs, "pairs": pairs, "per_seed": per_seed}
 
 
 def best_per_metric(rows: list) -> dict:

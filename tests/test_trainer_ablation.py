@@ -1,0 +1,39 @@
+"""Multi-seed ablation summary: mean ± SD per configuration and seed-paired comparisons."""
+from __future__ import annotations
+
+import statistics
+
+import pytest
+
+from trainer.ablation import TABLE_METRICS, summarise_seeds
+
+
+def _result(seed: int, md: dict) -> dict:
+    rows = []
+    for name, value in md.items():  # every metric scales with MD; DSC falls as MD grows
+        rows.append({"config": name, "md_mm": value, "hd_mm": 2 * value, "sd_mm": value / 2, "nn_md_mm": value,
+                     "dsc_1mm": 1 - value / 10, "dsc_01mm": 0.1 - value / 100, "cases": 5})
+    return {"store": "s.zarr", "split": "shape", "sr": 0.03, "seed": seed, "epochs": 30, "rows": rows}
+
+
+def test_summarise_seeds_by_hand():
+    per_seed = [_result(0, {"A1": 1.0, "R3": 0.9}), _result(1, {"A1": 1.1, "R3": 1.2}),
+                _result(2, {"A1": 1.2, "R3": 1.0})]
+    s = summarise_seeds(per_seed)
+    assert s["seeds"] == [0, 1, 2] and s["cases"] == [5, 5, 5]
+    assert s["configs"]["A1"]["md_mm"]["mean"] == pytest.approx(1.1)
+    assert s["configs"]["R3"]["md_mm"]["sd"] == pytest.approx(statistics.stdev([0.9, 1.2, 1.0]))
+    assert s["configs"]["R3"]["hd_mm"]["mean"] == pytest.approx(2 * statistics.fmean([0.9, 1.2, 1.0]))
+    pair = s["pairs"]["R3 vs A1"]
+    assert pair["md_mm"]["better_seeds"] == 2  # lower MD on seeds 0 and 2
+    assert pair["dsc_1mm"]["better_seeds"] == 2  # higher DSC on the same seeds
+    assert pair["md_mm"]["mean_diff"] == pytest.approx(statistics.fmean([-0.1, 0.1, -0.2]))
+    assert pair["md_mm"]["sd_diff"] == pytest.approx(statistics.stdev([-0.1, 0.1, -0.2]))
+    assert s["pairs"]["A1 vs R3"]["md_mm"]["better_seeds"] == 1
+    assert set(pair) == {k for k, _, _ in TABLE_METRICS}
+
+
+def test_summarise_one_seed_has_zero_sd():
+    s = summarise_seeds([_result(4, {"A1": 1.0, "paper": 1.0})])
+    assert s["configs"]["A1"]["md_mm"]["sd"] == 0.0
+    assert s["pairs"]["paper vs A1"]["md_mm"]["better_seeds"] == 0  # a tie is not a win
