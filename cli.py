@@ -467,13 +467,14 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     else:
         import ray
 
-        from trainer.ray_train import train_with_ray
+        from trainer.ray_train import NO_DASHBOARD_SETUP_HOOK, train_with_ray
 
         try:
             if address:
                 ray.init(address=address)
             elif not ray.is_initialized():
-                ray.init(num_cpus=workers if local else None, include_dashboard=False)
+                ray.init(num_cpus=workers if local else None, include_dashboard=False,
+                         runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK})
             if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
                 raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
         except (ConnectionError, RuntimeError, TrainerError) as exc:

@@ -14,6 +14,14 @@ from .config import TrainConfig, TrainerError
 from .loop import Dist, _write_csv, fit, pick_resume_state
 
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
+# Ray Train's placement-group cleaner polls the State API, which a Ray started without a dashboard
+# (our --local mode) does not serve: it would warn every second of the run that it cannot.
+NO_DASHBOARD_SETUP_HOOK = "trainer.ray_train.silence_state_api_polling"
+
+
+def silence_state_api_polling() -> None:
+    """worker_process_setup_hook for a dashboard-less local Ray: only errors from the cleaner."""
+    logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
 
 
 def _train_worker(config: dict) -> None:
