@@ -385,7 +385,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           run_dir: Path = typer.Option(..., "--run-dir", help="Run directory: checkpoint.pt, metrics.csv, Ray storage; "
                                                                "reusing it resumes the run."),
           gpus: int = typer.Option(0, "--gpus", help="GPU workers (DDP over NCCL); 0 = CPU workers with gloo."),
-          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | R1 R2 R3 | pca."),
+          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | R1–R4 | pca."),
           epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
           batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
           sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),
@@ -675,7 +675,8 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
         table.add_row(r["config"], *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
     con = Console(width=160)
     con.print(table)
-    for name, rivals in (("paper", ["A4", "pca"]), ("paper", ["A1"]), ("R1", ["A1"]), ("R2", ["A1"]), ("R3", ["A1"])):
+    for name, rivals in (("paper", ["A4", "pca"]), ("paper", ["A1"]), ("R1", ["A1"]), ("R2", ["A1"]), ("R3", ["A1"]),
+                         ("R4", ["A1"])):
         won = beats(rows, name, rivals)
         present = [o for o in rivals if o in {r["config"] for r in rows}]
         if won and present:
@@ -703,7 +704,7 @@ def _print_ablation_seeds(result: dict, root: Path) -> None:
     con.print(table)
     n = len(result["seeds"])
     for name, rival in (("paper", "A4"), ("paper", "pca"), ("paper", "A1"), ("R1", "A1"), ("R2", "A1"),
-                        ("R3", "A1")):
+                        ("R3", "A1"), ("R4", "A1")):
         pair = result["pairs"].get(f"{name} vs {rival}")
         if pair is None:
             continue

@@ -118,11 +118,14 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # R2 with the reconstruction pass as a fixed teacher for the cycle term (stop-gradient): the
     # cycle moves only the unloading prediction; the reverse decoder learns from labelled pairs only
     "R3": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading"),
+    # R3 with the cycle term weighted like the supervised one (λ_cycle = 1): with the teacher fixed,
+    # a larger weight cannot be met by the two maps agreeing on a wrong unloading
+    "R4": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading", lambda_cycle=1.0),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
                "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
-               "R3 (R2, cycle gradient to the unloading only) | pca")
+               "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | pca")
 
 
 def named_config(name: str) -> ModelConfig:
