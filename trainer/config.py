@@ -69,7 +69,8 @@ class ModelConfig:
         if self.reverse_weight < 0 or self.lambda_cycle < 0 or self.cycle_rampup_epochs < 0:
             raise TrainerError("loss weights lambda_cycle, reverse_weight and cycle_rampup_epochs must be ≥ 0")
         if self.cycle_grad == "unloading" and self.cycle and self.reverse_weight <= 0:
-            raise TrainerError("cycle_grad 'unloading' needs reverse_weight > 0 (the reverse decoder would never learn)")
+            raise TrainerError("cycle_grad 'unloading' needs reverse_weight > 0 "
+                               "(the reverse decoder would never learn)")
         if not 0 <= self.dropout < 1:
             raise TrainerError(f"dropout must be in [0, 1), got {self.dropout}")
 
