@@ -159,3 +159,22 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
         assert [h["epoch"] for h in state["history"]] == [1, 2, 3]  # epochs 1–2 came from the checkpoint
     finally:
         ray.shutdown()
+
+
+def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
+    """The hook is given to Ray as a dotted path: it must import, and it raises the placement-group
+    cleaner's log level so a dashboard-less Ray does not warn every second."""
+    import importlib
+    import logging
+
+    from trainer.ray_train import NO_DASHBOARD_SETUP_HOOK
+
+    module, name = NO_DASHBOARD_SETUP_HOOK.rsplit(".", 1)
+    hook = getattr(importlib.import_module(module), name)
+    logger = logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner")
+    before = logger.level
+    try:
+        hook()
+        assert logger.getEffectiveLevel() == logging.ERROR
+    finally:
+        logger.setLevel(before)
