@@ -625,7 +625,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
                        as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
     from storage.store import inspect_store
-    from trainer.ablation import TABLE_METRICS, beats, run_ablation, run_ablation_seeds
+    from trainer.ablation import KEY_COMPARISONS, TABLE_METRICS, beats, run_ablation, run_ablation_seeds
     from trainer.config import PAPER, TrainConfig, TrainerError
     from trainer.splits import parse_split
 
@@ -675,9 +675,8 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
         table.add_row(r["config"], *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
     con = Console(width=160)
     con.print(table)
-    for name, rivals in (("paper", ["A4", "pca"]), ("paper", ["A1"]), ("R1", ["A1"]), ("R2", ["A1"]), ("R3", ["A1"]),
-                         ("R4", ["A1"])):
-        won = beats(rows, name, rivals)
+    for name, rivals in KEY_COMPARISONS:
+        won = beats(rows, name, list(rivals))
         present = [o for o in rivals if o in {r["config"] for r in rows}]
         if won and present:
             wins = [label for k, label, _ in TABLE_METRICS if won[k]]
@@ -691,7 +690,7 @@ def _print_ablation_seeds(result: dict, root: Path) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    from trainer.ablation import TABLE_METRICS
+    from trainer.ablation import KEY_COMPARISONS, TABLE_METRICS
 
     seeds = ", ".join(str(s) for s in result["seeds"])
     table = Table(title=f"test split of {result['store']} (split {result['split']}, SR {result['sr']:g}, "
@@ -703,8 +702,7 @@ def _print_ablation_seeds(result: dict, root: Path) -> None:
     con = Console(width=160)
     con.print(table)
     n = len(result["seeds"])
-    for name, rival in (("paper", "A4"), ("paper", "pca"), ("paper", "A1"), ("R1", "A1"), ("R2", "A1"),
-                        ("R3", "A1"), ("R4", "A1")):
+    for name, rival in ((name, rival) for name, rivals in KEY_COMPARISONS for rival in rivals):
         pair = result["pairs"].get(f"{name} vs {rival}")
         if pair is None:
             continue
