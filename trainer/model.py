@@ -268,7 +268,7 @@ class HeartUnloadNet(nn.Module):
             else:
                 d_ed = self._run(self.dec_ed, x_unl, ei, graph, batch, params, region, B)
         if reverse and cycle and self.cfg.reverse_weight > 0:
-            d_rev = self._reverse_on_labelled(data, batch, B)
+            d_rev = self._reverse_on_labelled(data, batch, B, graph)
         return (d_unl, d_ed, d_rev) if reverse else (d_unl, d_ed)
 
     @property
@@ -280,7 +280,7 @@ class HeartUnloadNet(nn.Module):
         dec_edges = graph if graph is not None and self.cfg.decoder == "gat" else ei
         return decoder(self.encode(x_in, enc_edges, batch, params, region, B), dec_edges)
 
-    def _reverse_on_labelled(self, data, batch, B: int):
+    def _reverse_on_labelled(self, data, batch, B: int, graph: AttentionGraph | None):
         """Dec_ed(encode(x̂_ED + ρ y)) on the labelled graphs' sub-batch (the loss ignores the others)."""
         lab = data.labelled.reshape(-1)[:B].to(torch.bool)
         n_lab = int(lab.sum())
@@ -297,7 +297,7 @@ class HeartUnloadNet(nn.Module):
             sub_ei = new_id[data.edge_index[:, e]]
             sub_batch = (torch.cumsum(lab.to(torch.long), 0) - 1)[batch[node]]
             params, region, x_true = data.params[lab], data.region[node], x_true[node]
-        graph = AttentionGraph.from_edge_index(sub_ei, x_true.shape[0]) if self._uses_attention_graph else None
+            graph = AttentionGraph.from_edge_index(sub_ei, x_true.shape[0]) if self._uses_attention_graph else None
         return self._run(self.dec_ed, x_true, sub_ei, graph, sub_batch, params, region, n_lab)
 
 
