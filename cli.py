@@ -385,7 +385,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           run_dir: Path = typer.Option(..., "--run-dir", help="Run directory: checkpoint.pt, metrics.csv, Ray storage; "
                                                                "reusing it resumes the run."),
           gpus: int = typer.Option(0, "--gpus", help="GPU workers (DDP over NCCL); 0 = CPU workers with gloo."),
-          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | R1–R4 | pca."),
+          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | R1–R5 | A1ema | pca."),
           epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
           batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
           sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),

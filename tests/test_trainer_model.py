@@ -234,3 +234,36 @@ def test_unloading_only_cycle_gradient(graphs):
             torch.testing.assert_close(g3[n], gb[n])
         if n.startswith("dec_ed."):
             assert g3[n] is None and float(gb[n].abs().sum()) > 0
+
+
+def test_teacher_cycle_runs_the_reconstruction_on_the_given_weights(graphs):
+    """cycle_grad="teacher" (R5): the reconstruction pass is the teacher network's (another set of
+    weights) applied to this model's unloading; the cycle gradient reaches the unloading decoder
+    and never the reverse decoder. Without teacher weights it is the stop-gradient pass of R3."""
+    torch.manual_seed(3)
+    cfg = replace(small(named_config("R5")), dropout=0.0)
+    student, teacher = build_model(cfg, 0.1).train(), build_model(cfg, 0.1).train()
+    batch = Batch.from_data_list(graphs)
+    weights = {n: p.detach() for n, p in teacher.named_parameters()}
+    d_unl, d_ed = student(batch, teacher=weights)
+    expected = teacher(batch, _reconstruct_from=batch.x + 0.1 * d_unl.detach())
+    torch.testing.assert_close(d_ed.detach(), expected.detach())
+    (d_unl + d_ed).pow(2).mean().backward()
+    for n, p in student.named_parameters():
+        if n.startswith("dec_ed."):
+            assert p.grad is None
+        if n.startswith("dec_unloaded."):
+            assert p.grad is not None and float(p.grad.abs().sum()) > 0
+    r3 = build_model(replace(cfg, cycle_grad="unloading", ema_decay=0.0), 0.1).train()
+    r3.load_state_dict(student.state_dict())
+    torch.testing.assert_close(student(batch)[1], r3(batch)[1])
+
+
+def test_teacher_and_weight_average_settings_are_checked():
+    with pytest.raises(TrainerError, match="ema_decay > 0"):
+        replace(named_config("R5"), ema_decay=0.0)
+    with pytest.raises(TrainerError, match="ema_decay must be in"):
+        replace(named_config("A1"), ema_decay=1.0)
+    with pytest.raises(TrainerError, match="reverse_weight > 0"):
+        replace(named_config("R5"), reverse_weight=0.0)
+    assert named_config("a1EMA").ema_decay == 0.99 and not named_config("A1ema").cycle

@@ -27,7 +27,14 @@ class ModelConfig:
             ED-reconstruction pass alike) | unloading (the reconstruction pass is a fixed teacher for
             that term: its weights get no cycle gradient, only the unloading prediction moves, so the
             two maps cannot co-adapt to agree on a wrong unloading; the reverse decoder then learns
-            from the labelled pairs alone — use with reverse_weight > 0)
+            from the labelled pairs alone — use with reverse_weight > 0) | teacher (the same, but the
+            reconstruction pass runs on the weight average below: a mean teacher, Tarvainen & Valpola
+            2017, which changes slowly and averages out the student's step-to-step noise; needs
+            ema_decay > 0)
+    ema_decay: keep an exponential moving average of the weights, θ̄ ← d·θ̄ + (1 − d)·θ after every
+            optimiser step (d warmed up as min(d, (1 + t)/(10 + t)) over the first steps t); the
+            average is what validation sees and what the checkpoint saves as the best model.
+            0 = off (the paper)
     gat_kernel: how GAT layers sum over neighbours — sparse (one sparse-matrix product per layer,
             trainer.sparse_gat; the default) | pyg (torch_geometric's GATConv). Same mathematics and
             parameter names: a checkpoint loads with either
@@ -48,6 +55,7 @@ class ModelConfig:
     reverse_weight: float = 0.0  # λ_rev: also supervise the reverse decoder on labelled pairs (0 = paper)
     cycle_rampup_epochs: int = 0  # λ_cycle grows linearly over the first epochs (0 = from the start, the paper)
     cycle_grad: str = "both"
+    ema_decay: float = 0.0
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
     kind: str = "gnn"
@@ -60,7 +68,7 @@ class ModelConfig:
         choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                    "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
                    "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
-                   "cycle_grad": ("both", "unloading")}
+                   "cycle_grad": ("both", "unloading", "teacher")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
@@ -68,9 +76,13 @@ class ModelConfig:
             raise TrainerError("model hidden, heads and layers must be ≥ 1")
         if self.reverse_weight < 0 or self.lambda_cycle < 0 or self.cycle_rampup_epochs < 0:
             raise TrainerError("loss weights lambda_cycle, reverse_weight and cycle_rampup_epochs must be ≥ 0")
-        if self.cycle_grad == "unloading" and self.cycle and self.reverse_weight <= 0:
-            raise TrainerError("cycle_grad 'unloading' needs reverse_weight > 0 "
+        if self.cycle_grad != "both" and self.cycle and self.reverse_weight <= 0:
+            raise TrainerError(f"cycle_grad {self.cycle_grad!r} needs reverse_weight > 0 "
                                "(the reverse decoder would never learn)")
+        if not 0 <= self.ema_decay < 1:
+            raise TrainerError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.cycle_grad == "teacher" and self.cycle and self.ema_decay <= 0:
+            raise TrainerError("cycle_grad 'teacher' needs ema_decay > 0 (the teacher is the weight average)")
         if not 0 <= self.dropout < 1:
             raise TrainerError(f"dropout must be in [0, 1), got {self.dropout}")
 
@@ -122,11 +134,18 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # R3 with the cycle term weighted like the supervised one (λ_cycle = 1): with the teacher fixed,
     # a larger weight cannot be met by the two maps agreeing on a wrong unloading
     "R4": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading", lambda_cycle=1.0),
+    # R4 with a mean teacher: the reconstruction pass runs on the weight average (EMA, d = 0.99),
+    # which is also the model validated and saved
+    "R5": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="teacher", lambda_cycle=1.0,
+                  ema_decay=0.99),
+    # A1 (no cycle) with the same weight average, the fair baseline for R5
+    "A1ema": replace(PAPER, cycle=False, ema_decay=0.99),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
                "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
-               "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | pca")
+               "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | R5 (R4, mean teacher) | "
+               "A1ema (A1, weight average) | pca")
 
 
 def named_config(name: str) -> ModelConfig:

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from ._malloc import tune_allocator
+from .averaging import WeightAverage
 from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
 from .data import DataBundle, build_training_data
@@ -211,6 +212,10 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         if dist.is_main:
             dist.log(f"resuming {run_dir} from epoch {start_epoch} (best validation {best_val:.4g} at epoch {best_epoch})")
     model.to(dist.device)
+    average = WeightAverage(model, cfg.model.ema_decay) if cfg.model.ema_decay > 0 else None
+    if average is not None and state is not None:
+        average.load_state_dict(state["weight_average"])
+    evaluated = average.model if average is not None else model  # what validation sees and best_model keeps
     if dist.device.type == "cuda":
         torch.set_float32_matmul_precision("high")  # TF32 tensor cores for the fp32 dense layers
     for s in opt.state.values():  # optimiser moments follow the model
@@ -241,10 +246,13 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             batch = _move(batch, dist.device)
             opt.zero_grad(set_to_none=True)
             with _autocast(cfg, dist.device):
-                d_unl, d_ed, d_rev = wrapped(batch, reverse=True)
+                d_unl, d_ed, d_rev = wrapped(batch, reverse=True,
+                                             teacher=average.teacher() if average is not None else None)
             terms = loss_terms(d_unl, d_ed, batch, cfg.model.cycle_weight(epoch), d_rev, cfg.model.reverse_weight)
             terms["loss"].backward()
             opt.step()
+            if average is not None:
+                average.update(model)
             g = batch.num_graphs
             sums[0] += float(terms["loss"].detach()) * g
             sums[1] += float(terms["sup"].detach()) * g
@@ -252,12 +260,12 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             sums[3] += g
         sums = _all_reduce(sums, dist)
         train_loss = sums[0] / max(sums[3], 1)
-        val_loss, val_md = _validate(model, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
+        val_loss, val_md = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
         monitor = val_loss if math.isfinite(val_loss) else train_loss
         sched.step(monitor)
         if monitor < best_val:
             best_val, best_epoch, bad_epochs = monitor, epoch + 1, 0
-            best_model = cpu_state(model)
+            best_model = cpu_state(evaluated)
         else:
             bad_epochs += 1
         stopped = bad_epochs >= cfg.patience
@@ -287,6 +295,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                         "best_val": best_val, "best_epoch": best_epoch, "bad_epochs": bad_epochs,
                         "history": history, "stopped_early": stopped, "finished": last,
                         "n_parameters": n_params}
+                if average is not None:
+                    ckpt["weight_average"] = average.state_dict()
                 if writes:
                     save_checkpoint(local, ckpt)
         if dist.report is not None:

@@ -202,7 +202,8 @@ class HeartUnloadNet(nn.Module):
     loss  = MSE(d_unl, y)[labelled] + λ_cycle · MSE(d_unl + d_ed, 0)   (= reconstructed ED − ED)
             [+ λ_rev · MSE(Dec_ed(encode(x̂_ED + ρ y, p)), −y)[labelled]  when reverse_weight λ_rev > 0]
     With cycle_grad = "unloading" the d_ed pass runs on detached weights: the cycle term moves
-    d_unl only (through the frozen pass's input), never Dec_ed or the encoder's second use.
+    d_unl only (through the frozen pass's input), never Dec_ed or the encoder's second use; with
+    "teacher" it runs on the weight average the training loop passes in (a mean teacher).
     """
 
     def __init__(self, cfg: ModelConfig, disp_to_coord: float = 0.1):
@@ -240,12 +241,14 @@ class HeartUnloadNet(nn.Module):
         return h
 
     def forward(self, data, cycle: bool | None = None, reverse: bool = False, graph: AttentionGraph | None = None,
-                *, _reconstruct_from: torch.Tensor | None = None):
+                *, teacher: dict | None = None, _reconstruct_from: torch.Tensor | None = None):
         """Returns (d_unl [N,3], d_ed [N,3] or None), both normalised displacements; with
         reverse=True a third item, d_rev [N_lab,3] or None: the reverse decoder applied to the true
         unloaded meshes x̂_ED + ρ y of the labelled graphs only (their nodes in batch order; [0,3]
         when none is labelled). Computed only when cfg.reverse_weight > 0.
         graph: data.edge_index already as an AttentionGraph (repeated inference on one mesh).
+        teacher: with cycle_grad="teacher", the weights (name → tensor, no gradient) the
+        reconstruction pass runs on in training; when None, this model's own detached weights.
         _reconstruct_from: internal — only the reconstruction pass Dec_ed(encode(·)), which the
         cycle_grad="unloading" configuration runs with detached weights."""
         cycle = self.cfg.cycle if cycle is None else (cycle and self.cfg.cycle)
@@ -262,8 +265,9 @@ class HeartUnloadNet(nn.Module):
         d_ed = d_rev = None
         if cycle:
             x_unl = x + self.disp_to_coord * d_unl
-            if self.cfg.cycle_grad == "unloading" and self.training:
-                frozen = {name: p.detach() for name, p in self.named_parameters()}
+            if self.cfg.cycle_grad != "both" and self.training:
+                frozen = teacher if self.cfg.cycle_grad == "teacher" and teacher is not None else \
+                    {name: p.detach() for name, p in self.named_parameters()}
                 d_ed = torch.func.functional_call(self, frozen, (data,), {"graph": graph, "_reconstruct_from": x_unl})
             else:
                 d_ed = self._run(self.dec_ed, x_unl, ei, graph, batch, params, region, B)
