@@ -407,6 +407,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     from storage.store import StoreError, inspect_store
     from trainer.checkpoint import load_checkpoint, run_checkpoint_path
     from trainer.config import TrainConfig, TrainerError, named_config
+    from trainer.loop import check_same_run
     from trainer.splits import parse_split
 
     try:
@@ -436,12 +437,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         if run_dir.exists() and not run_dir.is_dir():
             raise TrainerError(f"--run-dir {run_dir} is a file")
         ckpt = run_checkpoint_path(run_dir)
-        if ckpt.is_file():
-            saved = TrainConfig.from_dict(load_checkpoint(ckpt)["train_config"])
-            if saved.identity() != cfg.identity():
-                raise TrainerError(f"run directory {run_dir} holds a run with another configuration "
-                                   f"({saved.config_name}, split {saved.split}, SR {saved.sr:g}, seed {saved.seed}); "
-                                   f"use a new --run-dir")
+        if ckpt.is_file():  # refused here, before Ray starts; the loop checks the split too
+            check_same_run(load_checkpoint(ckpt), cfg, run_dir)
         import torch
 
         if gpus and not address and torch.cuda.device_count() < gpus:

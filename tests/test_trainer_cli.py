@@ -121,7 +121,7 @@ def test_train_bad_inputs(trained, tmp_path, args, words):
 
 def test_train_refuses_a_run_dir_of_another_config(trained):
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", trained["run"], "--no-ray", "--config", "A1"),
-                     "another configuration")
+                     "another model", "config paper")
     assert_bad_input(run("train", "--store", trained["root"] / "missing.zarr", "--run-dir", trained["root"] / "x",
                          "--no-ray"), "no heartctl store")
 

@@ -21,7 +21,8 @@ TABLE_METRICS = (("md_mm", "MD mm", "min"), ("hd_mm", "HD mm", "min"), ("sd_mm",
                  ("dsc_1mm", "DSC@1mm", "max"), ("dsc_01mm", "DSC@0.1mm", "max"), ("nn_md_mm", "NN-MD mm", "min"))
 # the comparisons a table reports below itself: configuration → the rivals it should beat
 KEY_COMPARISONS = (("paper", ("A4", "pca")), ("paper", ("A1",)), ("R1", ("A1",)), ("R2", ("A1",)),
-                   ("R3", ("A1",)), ("R4", ("A1",)))
+                   ("R3", ("A1",)), ("R4", ("A1",)), ("A1ema", ("A1",)), ("R5", ("A1ema",)), ("R5", ("A1",)),
+                   ("R5", ("R4",)))
 
 
 def run_name(config: str, sr: float) -> str:

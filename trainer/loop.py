@@ -145,12 +145,18 @@ def pick_resume_state(candidates: list) -> dict | None:
     return max(states, key=lambda s: int(s.get("epoch", 0))) if states else None
 
 
-def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: Path) -> None:
+def check_same_run(state: dict, cfg: TrainConfig, run_dir: Path) -> None:
+    """TrainerError unless the checkpoint `state` was written by a run `cfg` may resume."""
     saved = TrainConfig.from_dict(state["train_config"])
     if saved.identity() != cfg.identity():
         diff = [k for k in cfg.identity() if saved.identity()[k] != cfg.identity()[k]]
         raise TrainerError(f"run directory {run_dir} holds a run with another {', '.join(diff)} "
-                           f"(config {saved.config_name}); use a new --run-dir")
+                           f"(config {saved.config_name}, split {saved.split}, SR {saved.sr:g}, seed {saved.seed}); "
+                           f"use a new --run-dir")
+
+
+def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: Path) -> None:
+    check_same_run(state, cfg, run_dir)
     if state.get("kind") != ("pca" if cfg.model.kind == "pca" else "gnn"):
         raise TrainerError(f"run directory {run_dir} holds a {state.get('kind')} run; use a new --run-dir")
     split_now = {k: [list(x) for x in v] for k, v in bundle.split.items()}
