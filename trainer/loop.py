@@ -176,7 +176,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     """Train (or resume) the configured model into run_dir; returns a summary dict.
 
     run_dir gets checkpoint.pt (model, best model, optimiser, scheduler, epoch, normalisation,
-    config, split, history), metrics.csv, config.json and TensorBoard events when available."""
+    config, split, history; the weight average when ema_decay > 0, whose weights are then the ones
+    validated and kept as the best model), metrics.csv, config.json and TensorBoard events when available."""
     dist = dist or Dist()
     run_dir = Path(run_dir)
     tune_allocator()
