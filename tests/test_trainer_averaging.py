@@ -54,6 +54,7 @@ def test_mean_teacher_run_keeps_and_resumes_the_average(store, tmp_path):
     assert steps > 0 and steps % 2 == 0  # the same number of optimiser steps in each epoch
     averaged = state["weight_average"]["weights"]
     assert any(not torch.equal(averaged[k], state["model"][k]) for k in averaged)  # average ≠ the last weights
+    assert any(not torch.equal(state["best_model"][k], state["model"][k]) for k in averaged)  # the best is averaged
     if state["best_epoch"] == 2:
         assert all(torch.equal(averaged[k], state["best_model"][k]) for k in averaged)
     fit(replace(cfg, epochs=3), run)

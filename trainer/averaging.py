@@ -7,6 +7,8 @@ import copy
 import torch
 from torch import nn
 
+from .checkpoint import cpu_state
+
 
 class WeightAverage:
     r"""θ̄ ← d_t·θ̄ + (1 − d_t)·θ after every optimiser step, with the decay warmed up as
@@ -43,8 +45,7 @@ class WeightAverage:
         return dict(self.model.named_parameters())
 
     def state_dict(self) -> dict:
-        return {"weights": {k: v.detach().to("cpu", copy=True) for k, v in self.model.state_dict().items()},
-                "steps": self.steps}
+        return {"weights": cpu_state(self.model), "steps": self.steps}
 
     def load_state_dict(self, state: dict) -> None:
         self.model.load_state_dict(state["weights"])
