@@ -162,19 +162,29 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
 
 
 def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
-    """The hook is given to Ray as a dotted path: it must import, and it raises the placement-group
-    cleaner's log level so a dashboard-less Ray does not warn every second."""
+    """The hook is given to Ray as a dotted path: it must import, and it drops the warnings (not the
+    errors) of the placement-group cleaner (every second without a dashboard) and of the
+    autoscaling-coordinator client (a traceback when its first request times out on a busy box),
+    also after a logging.config.dictConfig of their parent, as Ray Train's controller runs."""
     import importlib
     import logging
+    import logging.config
 
-    from trainer.ray_train import NO_DASHBOARD_SETUP_HOOK
+    from trainer.ray_train import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
 
     module, name = NO_DASHBOARD_SETUP_HOOK.rsplit(".", 1)
     hook = getattr(importlib.import_module(module), name)
-    logger = logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner")
-    before = logger.level
+    loggers = [logging.getLogger(n) for n in LOCAL_RAY_NOISY_LOGGERS]
+    before = [list(lg.filters) for lg in loggers]
     try:
         hook()
-        assert logger.getEffectiveLevel() == logging.ERROR
+        hook()  # idempotent
+        logging.config.dictConfig({"version": 1, "disable_existing_loggers": False,
+                                   "loggers": {"ray.train": {"level": "INFO"}}})
+        for lg in loggers:
+            assert lg.filter(logging.makeLogRecord({"levelno": logging.WARNING})) is False
+            assert lg.filter(logging.makeLogRecord({"levelno": logging.ERROR}))
+            assert len(lg.filters) == len(before[loggers.index(lg)]) + 1
     finally:
-        logger.setLevel(before)
+        for lg, filters in zip(loggers, before):
+            lg.filters = filters

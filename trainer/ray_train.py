@@ -14,14 +14,27 @@ from .config import TrainConfig, TrainerError
 from .loop import Dist, _write_csv, fit, pick_resume_state
 
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
-# Ray Train's placement-group cleaner polls the State API, which a Ray started without a dashboard
-# (our --local mode) does not serve: it would warn every second of the run that it cannot.
-NO_DASHBOARD_SETUP_HOOK = "trainer.ray_train.silence_state_api_polling"
+# Two harmless warnings of a local Ray without a dashboard (our --local mode), quietened in its
+# worker processes: Ray Train's placement-group cleaner polls the State API, which such a Ray does
+# not serve, and would warn every second of the run; and the controller's first resource request to
+# the autoscaling coordinator (there is no autoscaler on one machine) times out after 5 s while two
+# busy cores are still starting the workers, which it logs as a warning with a full traceback.
+# A filter, not a level: the controller's logging.config.dictConfig resets its child loggers' levels.
+NO_DASHBOARD_SETUP_HOOK = "trainer.ray_train.quieten_local_ray"
+LOCAL_RAY_NOISY_LOGGERS = ("ray.train.v2._internal.execution.controller.placement_group_cleaner",
+                           "ray.train.v2._internal.execution.scaling_policy.autoscaling_coordinator_client")
 
 
-def silence_state_api_polling() -> None:
-    """worker_process_setup_hook for a dashboard-less local Ray: only errors from the cleaner."""
-    logging.getLogger("ray.train.v2._internal.execution.controller.placement_group_cleaner").setLevel(logging.ERROR)
+def errors_only(record: logging.LogRecord) -> bool:
+    return record.levelno >= logging.ERROR
+
+
+def quieten_local_ray() -> None:
+    """worker_process_setup_hook for a dashboard-less local Ray: only errors from those two loggers."""
+    for name in LOCAL_RAY_NOISY_LOGGERS:
+        logger = logging.getLogger(name)
+        if errors_only not in logger.filters:
+            logger.addFilter(errors_only)
 
 
 def _train_worker(config: dict) -> None:
