@@ -223,6 +223,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     if average is not None and state is not None:
         average.load_state_dict(state["weight_average"])
     evaluated = average.model if average is not None else model  # what validation sees and best_model keeps
+    uses_teacher = average is not None and cfg.model.cycle and cfg.model.cycle_grad == "teacher"
     if dist.device.type == "cuda":
         torch.set_float32_matmul_precision("high")  # TF32 tensor cores for the fp32 dense layers
     for s in opt.state.values():  # optimiser moments follow the model
@@ -253,8 +254,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             batch = _move(batch, dist.device)
             opt.zero_grad(set_to_none=True)
             with _autocast(cfg, dist.device):
-                d_unl, d_ed, d_rev = wrapped(batch, reverse=True,
-                                             teacher=average.teacher() if average is not None else None)
+                d_unl, d_ed, d_rev = wrapped(batch, reverse=True, teacher=average.teacher() if uses_teacher else None)
             terms = loss_terms(d_unl, d_ed, batch, cfg.model.cycle_weight(epoch), d_rev, cfg.model.reverse_weight)
             terms["loss"].backward()
             opt.step()
