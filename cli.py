@@ -152,7 +152,7 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
 
 
 @app.command()
-def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diastolic mesh."),
+def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diastolic mesh."),
            pressure: float = PressureOpt, stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
            out: Path = typer.Option(..., "-o", "--out", help="Output: unloaded mesh with `displacement` (ED − unloaded)."),
            method: UnloadMethod = typer.Option(UnloadMethod.fe, "--method", help="fe: inverse finite elements; "
@@ -178,7 +178,12 @@ def unload(mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diast
     except _input_errors() as exc:
         fail(str(exc))
     if method is not UnloadMethod.fe:
-        return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm, units.value)
+        from click.core import ParameterSource
+
+        asked = {name: value for name, value in (("base", base.value), ("fibres", fibres))
+                 if ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
+        return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm,
+                                    units.value, fibres, asked)
     try:
         result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm, fibres=fibres)
     except SolveError as exc:
@@ -222,12 +227,17 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
                  threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver (goals are for 1 core)."),
                  as_json: bool = typer.Option(False, "--json")):
     """Wall time of forward and pair per preset at a mid case (8 mmHg, 150 Pa) and the extreme (14, 50)."""
+    if threads < 1:
+        fail(f"--threads must be ≥ 1, got {threads}")
     for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ[var] = str(threads)
     from solver.benchmark_solver import run_solver_benchmark
 
     presets = [f.value for f in fidelity] if fidelity else ["fast", "accurate"]
-    rows = run_solver_benchmark(presets, nodes, shape)
+    try:
+        rows = run_solver_benchmark(presets, nodes, shape)
+    except _input_errors() as exc:
+        fail(str(exc))
     if as_json:
         for row in rows:
             typer.echo(json.dumps(row))
@@ -255,7 +265,10 @@ def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fi
     """Round trip solve(unload(x_ED)) at the 8 corners of the paper's box on the 3 extreme shapes."""
     from solver.benchmark_solver import run_corner_benchmark
 
-    rows = run_corner_benchmark(fidelity.value, nodes)
+    try:
+        rows = run_corner_benchmark(fidelity.value, nodes)
+    except _input_errors() as exc:
+        fail(str(exc))
     for r in rows:
         if as_json:
             typer.echo(json.dumps(r))
@@ -349,14 +362,15 @@ def _trainer_errors():
     return (TrainerError, StoreError, ValueError, FileNotFoundError, NotADirectoryError)
 
 
-def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity: str, base: str, tol_mm, units: str):
+def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity: str, base: str, tol_mm, units: str,
+                         fibres: str, asked: dict):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
     from solver.forward import SolveError
     from storage.meshfiles import write_mesh
     from trainer.predict import unload_with_network
 
     try:
-        result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm)
+        result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm, fibres=fibres, asked=asked)
     except SolveError as exc:
         fail(f"inverse solve did not converge: {exc}", code=1)
     except _trainer_errors() as exc:
@@ -407,7 +421,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     from storage.store import StoreError, inspect_store
     from trainer.checkpoint import load_checkpoint, run_checkpoint_path
     from trainer.config import TrainConfig, TrainerError, named_config
-    from trainer.loop import check_same_run
+    from trainer.data import build_training_data
+    from trainer.loop import check_resumable, check_same_run
     from trainer.splits import parse_split
 
     try:
@@ -437,8 +452,11 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         if run_dir.exists() and not run_dir.is_dir():
             raise TrainerError(f"--run-dir {run_dir} is a file")
         ckpt = run_checkpoint_path(run_dir)
-        if ckpt.is_file():  # refused here, before Ray starts; the loop checks the split too
-            check_same_run(load_checkpoint(ckpt), cfg, run_dir)
+        if ckpt.is_file():  # refused here, before Ray starts (whose workers would retry a refusal)
+            state = load_checkpoint(ckpt)
+            check_same_run(state, cfg, run_dir)
+            if not (no_ray or model.kind == "pca"):  # the plain loop checks the store itself
+                check_resumable(state, cfg, build_training_data(cfg.store, cfg.split, cfg.seed, cfg.sr), run_dir)
         import torch
 
         if gpus and not address and torch.cuda.device_count() < gpus:

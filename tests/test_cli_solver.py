@@ -157,6 +157,18 @@ def test_mesh_command_rejects_bad_shape(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("args,message", [
+    (("bench", "solver", "--nodes", 10), "node count"),
+    (("bench", "solver", "--shape", -1, "--nodes", 60), "shape id"),
+    (("bench", "solver", "--threads", 0), "--threads"),
+    (("bench", "corners", "--nodes", 10), "node count"),
+])
+def test_benchmarks_reject_bad_sizes(args, message):
+    r = run(*args)
+    assert r.exit_code == 2 and message in r.output, r.output
+    assert r.output.count("heartctl: error:") == 1 and "Traceback" not in r.output
+
+
 def test_output_folder_must_exist(tmp_path, lv_file):
     r = run("solve", lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "nope" / "out.vtu")
     assert r.exit_code == 2 and "does not exist" in r.output

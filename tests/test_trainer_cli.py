@@ -47,6 +47,8 @@ def test_train_evaluate_json(trained):
     for key in ("dsc_1mm", "dsc_01mm", "hd_mm", "md_mm", "sd_mm", "ms_per_case", "cases"):
         assert key in out
     assert out["cases"] > 0 and 0 <= out["dsc_1mm"] <= 1 and out["hd_mm"] >= out["md_mm"] > 0
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--no-plots",
+                         "--out", trained["run"] / "metrics.csv"), "is a file")
     r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--split", "all", "--no-plots")
     assert r.exit_code == 0, r.output
     assert "DSC @ 1 mm" in r.output
@@ -64,12 +66,37 @@ def test_unload_gnn_and_hybrid(trained, tmp_path):
     assert u.points.shape == (m.n_nodes, 3)
     np.testing.assert_allclose(u.points + u.point_data["displacement"], m.nodes / 10.0, atol=1e-9)  # cm
     assert np.abs(u.point_data["displacement"]).max() > 0
+    assert "trained on a store" not in r.output  # --base / --fibres left at their defaults: no warning
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method", "gnn",
+            "--base", "clamped", "--run", trained["run"], "--units", "cm", "-o", out)
+    assert r.exit_code == 0, r.output
+    assert "--base clamped: the network was trained on a store with base sliding" in r.output
     out2 = tmp_path / "hybrid.vtu"
     r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method", "hybrid",
             "--fidelity", "fast", "--run", trained["run"], "--units", "cm", "-o", out2)
     assert r.exit_code in (0, 1), r.output  # 1 only if the inverse solve itself fails
     if r.exit_code == 0:
         assert "hybrid" in r.output and out2.is_file()
+
+
+def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
+    """--method hybrid hands fidelity, base and fibres on to the inverse FE solve."""
+    import solver.lv
+    from solver.parameters import CaseParameters
+    from trainer.predict import unload_with_network
+
+    seen = {}
+
+    def fake_inverse(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None, fibres="laplace"):
+        seen.update(fidelity=fidelity, base=base, fibres=fibres, guess=initial_unloaded)
+        return type("R", (), {"unloaded_nodes": mesh.nodes.copy()})()
+
+    monkeypatch.setattr(solver.lv, "inverse_solve", fake_inverse)
+    m = lv_mesh(0)
+    out = unload_with_network(m, CaseParameters(8.0, 100.0, 60.0, -60.0), trained["run"], "hybrid", "fast",
+                              "clamped", fibres="heartfem")
+    assert seen["fidelity"] == "fast" and seen["base"] == "clamped" and seen["fibres"] == "heartfem"
+    assert (seen["guess"] is None) == out["fallback"]
 
 
 def test_bad_checkpoint_and_run_dirs(trained, tmp_path):
@@ -124,6 +151,18 @@ def test_train_refuses_a_run_dir_of_another_config(trained):
                      "another model", "config paper")
     assert_bad_input(run("train", "--store", trained["root"] / "missing.zarr", "--run-dir", trained["root"] / "x",
                          "--no-ray"), "no heartctl store")
+
+
+def test_resume_refuses_a_regenerated_store(tmp_path):
+    """Same case keys, another base condition: resuming would pair old weights with new data."""
+    import shutil
+
+    store = make_tiny_store(tmp_path / "s.zarr", shapes=4)
+    args = ("train", "--store", store, "--run-dir", tmp_path / "r", "--no-ray", "--batch-size", 8, "--device", "cpu")
+    assert run(*args, "--epochs", 1).exit_code == 0
+    shutil.rmtree(store)
+    make_tiny_store(store, shapes=4, attrs={"base": "clamped"})
+    assert_bad_input(run(*args, "--epochs", 2), "does not match", "base")
 
 
 def test_bench_model_small():

@@ -83,6 +83,14 @@ class _Evil:
         return (pickle.loads, (b"I1\n.",))
 
 
+@pytest.mark.parametrize("n,world", [(7, 2), (5, 3), (1, 2), (6, 3)])
+def test_validation_shards_cover_each_case_once(n, world):
+    from trainer.loop import validation_shard
+
+    shards = [validation_shard(list(range(n)), rank, world) for rank in range(world)]
+    assert sorted(i for s in shards for i in s) == list(range(n))
+
+
 def test_metrics_on_a_hand_computed_case():
     true = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
     pred = true + np.array([[0.05, 0, 0], [0, 0.5, 0], [0, 0, -2.0], [0, 0, 0]])

@@ -4,8 +4,6 @@ table, measured on our data. Each configuration gets its own run directory under
 rerun resumes unfinished runs and re-evaluates finished ones."""
 from __future__ import annotations
 
-import csv
-import json
 import statistics
 from dataclasses import replace
 from pathlib import Path
@@ -15,6 +13,7 @@ import torch
 from .config import TrainConfig, TrainerError, named_config
 from .data import build_training_data
 from .evaluate import evaluate_run
+from .files import write_csv, write_json
 from .loop import Dist, fit
 
 TABLE_METRICS = (("md_mm", "MD mm", "min"), ("hd_mm", "HD mm", "min"), ("sd_mm", "SD mm", "min"),
@@ -53,11 +52,8 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
                      "train_cases": summary["train_cases"]})
     result = {"store": base.store, "split": base.split, "sr": base.sr, "seed": base.seed, "epochs": base.epochs,
               "rows": rows, "best": best_per_metric(rows)}
-    with open(root / "ablation.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    (root / "ablation.json").write_text(json.dumps(result, indent=2))
+    write_csv(root / "ablation.csv", rows)
+    write_json(root / "ablation.json", result)
     return result
 
 
@@ -75,7 +71,7 @@ def run_ablation_seeds(base: TrainConfig, configs: list, seeds: list, root: Path
         log(f"=== seed {seed}")
         per_seed.append(run_ablation(replace(base, seed=seed), configs, root / f"seed{seed}", device, log))
     result = summarise_seeds(per_seed)
-    (root / "ablation_seeds.json").write_text(json.dumps(result, indent=2))
+    write_json(root / "ablation_seeds.json", result)
     return result
 
 

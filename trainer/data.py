@@ -218,9 +218,9 @@ def store_fingerprint(attrs: dict, features: dict) -> dict:
             "shape_nodes": {str(s): int(f.ed_mm.shape[0]) for s, f in sorted(features.items())}}
 
 
-def check_fingerprint(saved: dict, attrs: dict, features: dict, location) -> None:
-    """Raise TrainerError (one line) when the store is not the one the run was trained on."""
-    now = store_fingerprint(attrs, features)
+def check_fingerprint(saved: dict, now: dict, location) -> None:
+    """Raise TrainerError (one line) when the store whose store_fingerprint is `now` is not the one
+    the run (fingerprint `saved`) was trained on."""
     for name in ("grid", "fidelity", "seed", "base", "fibres"):
         if saved.get(name, "laplace" if name == "fibres" else None) != now.get(name):  # runs before fibres were recorded
             raise TrainerError(f"store {location} does not match the run: {name} is {now.get(name)!r}, "

@@ -2,8 +2,6 @@
 breakdown per parameter value, inference time, PNG plots and a VTU error map."""
 from __future__ import annotations
 
-import csv
-import json
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +10,8 @@ from storage.store import PARAM_NAMES
 
 from .checkpoint import load_run
 from .config import TrainerError
-from .data import check_fingerprint, read_store
+from .data import check_fingerprint, read_store, store_fingerprint
+from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
 from .predict import Predictor
 
@@ -39,7 +38,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     pred = Predictor(state, device)
     cases = read_store(store, keys)
     if keys is not None:
-        check_fingerprint(state["fingerprint"], cases.attrs, cases.features, store)
+        check_fingerprint(state["fingerprint"], store_fingerprint(cases.attrs, cases.features), store)
         missing = [k for k in keys if k not in cases.params]
         if missing:
             raise TrainerError(f"store {store} lacks {len(missing)} of the run's {len(keys)} {split} cases "
@@ -67,17 +66,17 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "split": split, "config": pred.cfg.config_name, "kind": pred.kind, "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
     by_param = _by_parameter(rows)
-    out_dir = Path(out_dir) if out_dir else run_dir / f"eval_{split}"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    _write_rows(out_dir / "cases.csv", rows)
-    _write_rows(out_dir / "by_parameter.csv", by_param)
-    (out_dir / "summary.json").write_text(json.dumps({**summary, **extras, "aggregate": agg}, indent=2))
-    files = ["cases.csv", "by_parameter.csv", "summary.json"]
+    out_dir = _output_folder(Path(out_dir) if out_dir else run_dir / f"eval_{split}")
+    write_csv(out_dir / "cases.csv", rows)
+    write_csv(out_dir / "by_parameter.csv", by_param)
+    files = ["cases.csv", "by_parameter.csv"]
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
     files += _error_map_vtu(out_dir, store, keys[median], cases.ed(keys[median]) + disps[median],
                             errors[median])
     if plots:
         files += _plots(out_dir, errors, rows[median], items[median][0], errors[median], state.get("history", []))
+    write_json(out_dir / "summary.json", {**summary, **extras, "aggregate": agg})  # last: marks a complete evaluation
+    files.append("summary.json")
     return {"summary": summary, **extras, "aggregate": agg, "by_parameter": by_param, "rows": rows,
             "out_dir": str(out_dir), "files": files}
 
@@ -93,14 +92,17 @@ def _by_parameter(rows: list) -> list:
     return out
 
 
-def _write_rows(path: Path, rows: list) -> None:
-    if not rows:
-        path.write_text("")
-        return
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+def _output_folder(out_dir: Path) -> Path:
+    """Create the output folder; drop an earlier evaluation's summary.json there, so the folder only
+    holds a summary once this evaluation has written all its files."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise TrainerError(f"--out {out_dir} is a file, not a folder")
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "summary.json").unlink(missing_ok=True)
+    except OSError as exc:
+        raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
+    return out_dir
 
 
 def _error_map_vtu(out_dir: Path, store, key, pred_mm, err) -> list:

@@ -2,8 +2,6 @@
 Train wrapper passes a `Dist` (rank, device, DDP wrapping, checkpoint report/restore) to distribute it."""
 from __future__ import annotations
 
-import csv
-import json
 import math
 import os
 import random
@@ -19,7 +17,8 @@ from ._malloc import tune_allocator
 from .averaging import WeightAverage
 from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
-from .data import DataBundle, build_training_data
+from .data import DataBundle, build_training_data, check_fingerprint
+from .files import write_csv, write_json
 from .model import build_model, count_parameters, loss_terms
 from .sampling import MixedBatchSampler, labelled_per_batch
 
@@ -89,11 +88,16 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
             train_sampler = RandomSampler(bundle.train, generator=gen)
             train_sampler.set_epoch = lambda epoch: gen.manual_seed(cfg.seed * 100003 + epoch)  # type: ignore[attr-defined]
         train = DataLoader(bundle.train, batch_size=cfg.batch_size, sampler=train_sampler, pin_memory=pin)
-    val_sampler = DistributedSampler(bundle.val, num_replicas=dist.world, rank=dist.rank, shuffle=False) \
-        if bundle.val and dist.world > 1 else None
-    val = DataLoader(bundle.val, batch_size=cfg.batch_size, sampler=val_sampler, shuffle=False, pin_memory=pin) \
-        if bundle.val else None
+    shard = validation_shard(bundle.val, dist.rank, dist.world)
+    val = DataLoader(shard, batch_size=cfg.batch_size, shuffle=False, pin_memory=pin) if shard else None
     return train, train_sampler, val
+
+
+def validation_shard(cases: list, rank: int, world: int) -> list:
+    """This rank's validation cases: every world-th from `rank`, without the padding of a
+    DistributedSampler (which repeats cases so the ranks get equal shares, and would weight those
+    twice in the all-reduced validation loss)."""
+    return cases[rank::world]
 
 
 def _autocast(cfg: TrainConfig, device: torch.device):
@@ -120,13 +124,7 @@ def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float)
 
 
 def _write_csv(path: Path, history: list) -> None:
-    tmp = path.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=METRIC_COLUMNS)
-        w.writeheader()
-        for row in history:
-            w.writerow({k: row.get(k) for k in METRIC_COLUMNS})
-    os.replace(tmp, path)
+    write_csv(path, [{k: row.get(k) for k in METRIC_COLUMNS} for row in history], METRIC_COLUMNS)
 
 
 def _tensorboard(run_dir: Path):
@@ -157,6 +155,7 @@ def check_same_run(state: dict, cfg: TrainConfig, run_dir: Path) -> None:
 
 def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: Path) -> None:
     check_same_run(state, cfg, run_dir)
+    check_fingerprint(state["fingerprint"], bundle.fingerprint, cfg.store)
     if state.get("kind") != ("pca" if cfg.model.kind == "pca" else "gnn"):
         raise TrainerError(f"run directory {run_dir} holds a {state.get('kind')} run; use a new --run-dir")
     split_now = {k: [list(x) for x in v] for k, v in bundle.split.items()}
@@ -196,7 +195,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     writes = dist.is_main and dist.write_local
     if writes:
         run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / "config.json").write_text(json.dumps(cfg.as_dict(), indent=2))
+        write_json(run_dir / "config.json", cfg.as_dict())
     if cfg.model.kind == "pca":
         return _fit_pca(cfg, run_dir, bundle, dist, t0)
 

@@ -116,12 +116,28 @@ def _warnings(pred: Predictor, feat: MeshFeatures, params) -> list:
     return out
 
 
+def _model_warnings(pred: Predictor, asked: dict) -> list:
+    """Warnings for model choices (`base`, `fibres`) the user asked for that the network was not
+    trained with: `--method gnn` can only give the answer of the model its store was generated with."""
+    trained = pred.state.get("fingerprint", {})
+    out = []
+    for name, value in asked.items():
+        was = trained.get(name, "laplace" if name == "fibres" else None)
+        if was is not None and value != was:
+            out.append(f"--{name} {value}: the network was trained on a store with {name} {was}, and --method gnn "
+                       f"gives that model's answer; use --method hybrid or fe for {name} {value}")
+    return out
+
+
 def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: str = "accurate",
-                        base: str = "sliding", tol_mm: float | None = None, device: str = "cpu") -> dict:
+                        base: str = "sliding", tol_mm: float | None = None, device: str = "cpu",
+                        fibres: str = "laplace", asked: dict | None = None) -> dict:
     """Unload an ED TetMesh (mm) at CaseParameters `params`.
 
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
-    (falls back to X0 = x_ED when the guess folds an element). Returns {"unloaded_nodes", "network_ms",
+    with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element).
+    asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
+    differ from the training store's draw a warning. Returns {"unloaded_nodes", "network_ms",
     "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
     if method not in ("gnn", "hybrid"):
         raise TrainerError(f"unknown network method {method!r}")
@@ -139,6 +155,7 @@ def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: st
     if method == "gnn":
         from solver.mesh import MeshError, check_geometry
 
+        out["warnings"] += _model_warnings(pred, asked or {})
         try:
             check_geometry(guess, mesh.tets)
         except MeshError as exc:
@@ -154,7 +171,8 @@ def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: st
     except MeshError as exc:
         out["warnings"].append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
         fallback = True
-    result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess, tol_mm=tol_mm)
+    result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess, tol_mm=tol_mm,
+                           fibres=fibres)
     out.update({"unloaded_nodes": result.unloaded_nodes, "inverse": result, "fallback": fallback,
                 "guess_error_mm": float(np.linalg.norm(guess - result.unloaded_nodes, axis=1).max())})
     return out
