@@ -57,6 +57,20 @@ def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
         fit(_cfg(store, epochs=3, model=replace(SMALL, cycle=False)), run)
 
 
+def test_resumed_run_equals_an_uninterrupted_one(store, tmp_path):
+    """Dropout draws, optimiser, scheduler and weight average all continue where they stopped: two
+    epochs in one go and one epoch + a resumed second give the same weights (one thread, CPU)."""
+    model = replace(SMALL, ema_decay=0.9, reverse_weight=1.0, cycle_grad="teacher")
+    fit(_cfg(store, model=model), tmp_path / "once")
+    fit(_cfg(store, model=model, epochs=1), tmp_path / "twice")
+    fit(_cfg(store, model=model), tmp_path / "twice")
+    once, twice = load_run(tmp_path / "once"), load_run(tmp_path / "twice")
+    for part in ("model", "best_model"):
+        for name, w in once[part].items():
+            torch.testing.assert_close(twice[part][name], w, rtol=0, atol=0, msg=f"{part}.{name}")
+    assert once["history"][-1]["train_loss"] == twice["history"][-1]["train_loss"]
+
+
 def test_checkpoints_load_without_unpickling_objects(tmp_path):
     good = tmp_path / "good.pt"
     save_checkpoint(good, {"kind": "gnn", "train_config": {}, "normalisation": {}, "fingerprint": {}, "split": {},

@@ -50,6 +50,24 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+def rng_state(device: torch.device) -> dict:
+    """The torch generators' states (dropout draws), saved with a checkpoint so that a resumed run
+    continues the random sequence an uninterrupted one would have drawn (data order is reseeded per
+    epoch by the samplers)."""
+    out = {"rng_torch": torch.get_rng_state()}
+    if device.type == "cuda":
+        out["rng_cuda"] = torch.cuda.get_rng_state(device)
+    return out
+
+
+def restore_rng(state: dict, device: torch.device) -> None:
+    """Undo rng_state (checkpoints written before it was saved keep the seeded generators)."""
+    if state.get("rng_torch") is not None:
+        torch.set_rng_state(state["rng_torch"].cpu())
+    if device.type == "cuda" and state.get("rng_cuda") is not None:
+        torch.cuda.set_rng_state(state["rng_cuda"].cpu(), device)
+
+
 def _all_reduce(values: list, dist: Dist) -> list:
     if dist.world <= 1:
         return values
@@ -215,6 +233,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         bad_epochs, history = int(state["bad_epochs"]), list(state["history"])
         best_model = state.get("best_model")
         stopped = bool(state.get("stopped_early", False))
+        restore_rng(state, dist.device)
         if dist.is_main:
             dist.log(f"resuming {run_dir} from epoch {start_epoch} (best validation {best_val:.4g} at epoch {best_epoch})")
     model.to(dist.device)
@@ -303,6 +322,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                         "n_parameters": n_params}
                 if average is not None:
                     ckpt["weight_average"] = average.state_dict()
+                ckpt.update(rng_state(dist.device))
                 if writes:
                     save_checkpoint(local, ckpt)
         if dist.report is not None:
