@@ -525,7 +525,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
 @app.command()
 def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartctl train --run-dir)."),
              store: str = typer.Option(..., "--store", help="The store the run was trained on."),
-             split: str = typer.Option("test", "--split", help="test | val | train (the run's split) | all (every done case)."),
+             split: str = typer.Option("test", "--split", help="test | val | train (the run's split) | all (every done case of --store, which may be a store the run never saw)."),
              device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
              out: Path = typer.Option(None, "--out", help="Output folder (default RUN/eval_SPLIT)."),
              plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots (needs matplotlib)."),
@@ -583,6 +583,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                     gat_kernel: str = typer.Option("sparse", "--gat-kernel",
                                                    help="sparse (one SpMM per GAT layer) | pyg (GATConv)."),
                     mesh: Path = typer.Option(None, "--mesh", help="Time on this LV mesh (mm) instead of meshing one with gmsh."),
+                    compile_model: bool = typer.Option(False, "--compile", help="torch.compile the model (dynamic shapes)."),
                     as_json: bool = typer.Option(False, "--json")):
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
     from trainer.bench import bench_model
@@ -605,14 +606,15 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
         if mesh is not None and not mesh.is_file():
             raise ValueError(f"--mesh {mesh}: no such file")
         r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
-                        mesh_path=None if mesh is None else str(mesh))
+                        mesh_path=None if mesh is None else str(mesh), compile_model=compile_model)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json.dumps(r))
         return
     typer.echo(f"{r['config']} model, {r['parameters']:,} parameters; mesh {r['nodes']} nodes, {r['edges']} directed edges; "
-               f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, eager PyTorch, "
+               f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, "
+               f"{'torch.compile (%.0f s to compile)' % r['compile_s'] if r['compiled'] else 'eager PyTorch'}, "
                f"{r['gat_kernel']} GAT kernel")
     for row in r["inference"]:
         typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} ms per batch)")

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One short GPU check (the device tool runs it from the repository root; carry .gpu, made by
 # scripts/gpu_prepare.sh): the sparse GAT kernel's CUDA tests against PyG's GATConv, then
-# `heartctl bench model` on the paper-size model for both GAT kernels, fp32 and bf16.
+# `heartctl bench model` on the paper-size model for both GAT kernels, fp32 and bf16, then the
+# sparse kernel in bf16 through torch.compile.
 # DEVICE=cpu runs the same steps on a CPU (to check the script itself).
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -19,3 +20,6 @@ for kernel in sparse pyg; do
         --gat-kernel "$kernel" $prec --batches "${BATCHES:-1,32,128,512}" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH} 2>&1 | tail -6
   done
 done
+echo "== bench model --gat-kernel sparse --bf16 --compile"
+$PY -c "from cli import app; app()" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu \
+    --gat-kernel sparse --bf16 --compile --batches "${BATCHES:-1,32,128,512}" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH} 2>&1 | tail -6

@@ -1,5 +1,5 @@
 """`heartctl bench model`: inference ms per case at several batch sizes and training graphs/s for
-a configured model on a real LV mesh, in plain eager PyTorch (no Ray)."""
+a configured model on a real LV mesh, in plain PyTorch (no Ray): eager, or with torch.compile."""
 from __future__ import annotations
 
 import time
@@ -17,25 +17,33 @@ from .data import Normalisation, case_graph, mesh_features
 from .model import build_model, count_parameters, loss_terms
 
 
-def _timed(fn, device, min_s: float = 1.0, min_runs: int = 3, max_runs: int = 200) -> float:
-    """Seconds per call (after one warm-up call)."""
-    fn()
+def _sync(device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def _timed(fn, device, min_s: float = 1.0, min_runs: int = 3, max_runs: int = 200, first: list | None = None) -> float:
+    """Seconds per call (after one warm-up call, whose seconds are appended to `first`)."""
+    t0 = time.perf_counter()
+    fn()
+    _sync(device)
+    if first is not None:
+        first.append(time.perf_counter() - t0)
     runs, t0 = 0, time.perf_counter()
     while runs < min_runs or (time.perf_counter() - t0 < min_s and runs < max_runs):
         fn()
         runs += 1
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
+        _sync(device)
     return (time.perf_counter() - t0) / runs
 
 
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
                 train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0,
-                gat_kernel: str = "sparse", mesh_path: str | None = None) -> dict:
+                gat_kernel: str = "sparse", mesh_path: str | None = None, compile_model: bool = False) -> dict:
     """mesh_path: time on this mesh (any format storage.meshfiles reads, mm) instead of meshing shape 0
-    with gmsh for `nodes` nodes (lets a GPU host without gmsh run the benchmark)."""
+    with gmsh for `nodes` nodes (lets a GPU host without gmsh run the benchmark). compile_model: run
+    the batched inference and the training step through torch.compile (dynamic shapes; the first,
+    untimed call of each pays the compilation, reported as compile_s)."""
     from torch_geometric.data import Batch
 
     tune_allocator()
@@ -69,6 +77,8 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         return case_graph(feat, p, norm, feat.ed_mm + rng.normal(0, 1, feat.ed_mm.shape), True)
 
     model = build_model(cfg, 0.1).to(dev)
+    run = torch.compile(model, dynamic=True) if compile_model else model
+    compile_s = []
     if dev.type == "cuda":
         torch.set_float32_matmul_precision("high")  # TF32 for fp32 matmuls, as the training loop
     amp = torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=bool(bf16 and dev.type == "cuda"))
@@ -79,9 +89,9 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
 
         def infer():
             with torch.no_grad(), amp:
-                model(data, cycle=False)
+                run(data, cycle=False)
 
-        s = _timed(infer, dev, min_s)
+        s = _timed(infer, dev, min_s, first=compile_s)
         rows.append({"batch": b, "ms_per_batch": s * 1e3, "ms_per_case": s * 1e3 / b})
     from .static import PreparedCase
 
@@ -97,14 +107,15 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     def step():
         opt.zero_grad(set_to_none=True)
         with amp:
-            d_unl, d_ed = model(data)
+            d_unl, d_ed = run(data)
         loss_terms(d_unl, d_ed, data, cfg.lambda_cycle)["loss"].backward()
         opt.step()
 
-    s = _timed(step, dev, min_s, min_runs=2)
+    s = _timed(step, dev, min_s, min_runs=2, first=compile_s)
     return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
             "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows,
             "prepared_single": prepared_row, "train_batch": tb,
-            "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle}
+            "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle,
+            "compiled": bool(compile_model), "compile_s": sum(compile_s) if compile_model else 0.0}
