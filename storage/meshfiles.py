@@ -115,6 +115,9 @@ def atomic_write(path: Path, writer) -> None:
         raise ValueError(f"output folder {path.parent} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; the result gets an ordinary file's mode
     try:
         writer(tmp)
         os.replace(tmp, path)

@@ -105,6 +105,26 @@ def test_validation_shards_cover_each_case_once(n, world):
     assert sorted(i for s in shards for i in s) == list(range(n))
 
 
+def test_result_files_are_whole_or_absent(tmp_path):
+    """write_csv / write_json: an ordinary file mode (not mkstemp's 0600), and a writer that fails
+    leaves neither the target nor its temporary file."""
+    import json
+    import os
+
+    from trainer.files import write_csv, write_json
+
+    write_csv(tmp_path / "a.csv", [{"x": 1, "y": 2}], ["y"])
+    assert (tmp_path / "a.csv").read_text().split() == ["y", "2"]
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "a.csv").stat().st_mode & 0o777 == 0o666 & ~umask
+    write_json(tmp_path / "b.json", {"md_mm": 0.5})
+    assert json.loads((tmp_path / "b.json").read_text()) == {"md_mm": 0.5}
+    with pytest.raises(TypeError):
+        write_json(tmp_path / "c.json", {"bad": {1, 2}})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.csv", "b.json"]
+
+
 def test_metrics_on_a_hand_computed_case():
     true = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])
     pred = true + np.array([[0.05, 0, 0], [0, 0.5, 0], [0, 0, -2.0], [0, 0, 0]])

@@ -142,7 +142,7 @@ def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float)
 
 
 def _write_csv(path: Path, history: list) -> None:
-    write_csv(path, [{k: row.get(k) for k in METRIC_COLUMNS} for row in history], METRIC_COLUMNS)
+    write_csv(path, history, METRIC_COLUMNS)
 
 
 def _tensorboard(run_dir: Path):
