@@ -218,11 +218,16 @@ def store_fingerprint(attrs: dict, features: dict) -> dict:
             "shape_nodes": {str(s): int(f.ed_mm.shape[0]) for s, f in sorted(features.items())}}
 
 
+def fingerprint_value(fingerprint: dict, name: str):
+    """One entry of a run's store fingerprint; runs from before fibre rules were recorded used laplace."""
+    return fingerprint.get(name, "laplace" if name == "fibres" else None)
+
+
 def check_fingerprint(saved: dict, now: dict, location) -> None:
     """Raise TrainerError (one line) when the store whose store_fingerprint is `now` is not the one
     the run (fingerprint `saved`) was trained on."""
     for name in ("grid", "fidelity", "seed", "base", "fibres"):
-        if saved.get(name, "laplace" if name == "fibres" else None) != now.get(name):  # runs before fibres were recorded
+        if fingerprint_value(saved, name) != now.get(name):
             raise TrainerError(f"store {location} does not match the run: {name} is {now.get(name)!r}, "
                                f"the run was trained on {saved.get(name)!r}")
     for s, n in now["shape_nodes"].items():

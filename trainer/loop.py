@@ -141,7 +141,8 @@ def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float)
     return sq / (3 * n), ab / n * disp_scale_mm
 
 
-def _write_csv(path: Path, history: list) -> None:
+def write_metrics_csv(path: Path, history: list) -> None:
+    """A run's per-epoch metrics (history rows) as metrics.csv, METRIC_COLUMNS in order."""
     write_csv(path, history, METRIC_COLUMNS)
 
 
@@ -252,7 +253,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     train_loader, sampler, val_loader = _loaders(bundle, cfg, dist)
     writer = _tensorboard(run_dir) if writes else None
     if writes:
-        _write_csv(run_dir / "metrics.csv", history)
+        write_metrics_csv(run_dir / "metrics.csv", history)
     if dist.is_main:
         dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases "
                  f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
@@ -303,7 +304,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         save = last or (epoch + 1) % max(cfg.checkpoint_every, 1) == 0
         ckpt = None
         if writes:
-            _write_csv(run_dir / "metrics.csv", history)
+            write_metrics_csv(run_dir / "metrics.csv", history)
         if dist.is_main:
             if writer is not None:
                 for k, v in row.items():
@@ -351,7 +352,7 @@ def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0
         state = {**base_state(cfg, bundle, "pca"), "model": pca.state_dict(), "best_model": pca.state_dict(),
                  "epoch": 1, "history": [], "finished": True, "n_parameters": int(sum(v.numel() for v in pca.state_dict().values()))}
         save_checkpoint(run_checkpoint_path(run_dir), state)
-        _write_csv(run_dir / "metrics.csv", [])
+        write_metrics_csv(run_dir / "metrics.csv", [])
         dist.log(f"pca: fitted on {len(keys)} labelled training cases "
                  f"({pca.s['disp_comps'].shape[0]} displacement components)")
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": 1, "epoch": 1, "resumed_from": 0,

@@ -11,7 +11,7 @@ import torch
 from ._malloc import tune_allocator
 from .checkpoint import load_run
 from .config import TrainConfig, TrainerError
-from .data import MeshFeatures, Normalisation, case_graph, mesh_features
+from .data import MeshFeatures, Normalisation, case_graph, fingerprint_value, mesh_features
 
 
 class Predictor:
@@ -122,7 +122,7 @@ def _model_warnings(pred: Predictor, asked: dict) -> list:
     trained = pred.state.get("fingerprint", {})
     out = []
     for name, value in asked.items():
-        was = trained.get(name, "laplace" if name == "fibres" else None)
+        was = fingerprint_value(trained, name)
         if was is not None and value != was:
             out.append(f"--{name} {value}: the network was trained on a store with {name} {was}, and --method gnn "
                        f"gives that model's answer; use --method hybrid or fe for {name} {value}")

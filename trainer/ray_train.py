@@ -11,7 +11,7 @@ from pathlib import Path
 
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
-from .loop import Dist, _write_csv, fit, pick_resume_state
+from .loop import Dist, fit, pick_resume_state, write_metrics_csv
 
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
 # Two harmless warnings of a local Ray without a dashboard (our --local mode), quietened in its
@@ -138,7 +138,7 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     if final is None:
         raise TrainerError("Ray Train finished without a checkpoint")
     save_checkpoint(local, {k: v for k, v in final.items() if k not in ("format", "version")})
-    _write_csv(run_dir / "metrics.csv", final.get("history", []))
+    write_metrics_csv(run_dir / "metrics.csv", final.get("history", []))
     hist = final.get("history", [])
     best = next((r for r in hist if r["epoch"] == final.get("best_epoch")), {})
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epoch": int(final["epoch"]),
