@@ -406,6 +406,9 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           labelled_share: float = typer.Option(0.25, "--labelled-share",
                                                help="SR < 1: share of each batch drawn from the labelled cases."),
           split: str = typer.Option("shape", "--split", help="shape (70/30 of shapes) | lovo:P=10 (C=, endo=, epi=) | source."),
+          train_fraction: float = typer.Option(1.0, "--train-fraction",
+                                               help="Train on this fraction of the training shapes (seeded; "
+                                                    "validation and test unchanged)."),
           seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset, initialisation and shuffling."),
           local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
           no_ray: bool = typer.Option(False, "--no-ray", help="Run the plain PyTorch loop in this process (no Ray)."),
@@ -421,7 +424,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     from storage.store import StoreError, inspect_store
     from trainer.checkpoint import load_checkpoint, run_checkpoint_path
     from trainer.config import TrainConfig, TrainerError, named_config
-    from trainer.data import build_training_data
+    from trainer.data import training_data
     from trainer.loop import check_resumable, check_same_run
     from trainer.splits import parse_split
 
@@ -442,7 +445,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             store = str(Path(store).resolve())
         run_dir = run_dir.resolve()
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
-                          labelled_share=labelled_share, seed=seed,
+                          train_fraction=train_fraction, labelled_share=labelled_share, seed=seed,
                           epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size,
                           lr=lr, patience=patience, bf16=bf16)
         if inspect_store(store) is None:
@@ -456,7 +459,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             state = load_checkpoint(ckpt)
             check_same_run(state, cfg, run_dir)
             if not (no_ray or model.kind == "pca"):  # the plain loop checks the store itself
-                check_resumable(state, cfg, build_training_data(cfg.store, cfg.split, cfg.seed, cfg.sr), run_dir)
+                check_resumable(state, cfg, training_data(cfg), run_dir)
         import torch
 
         if gpus and not address and torch.cuda.device_count() < gpus:
@@ -729,6 +732,79 @@ def _print_ablation_seeds(result: dict, root: Path) -> None:
                   f"{md['mean_diff']:+.3f} ± {md['sd_diff']:.3f} mm; better on every seed for {wins}/"
                   f"{len(TABLE_METRICS)} metrics")
     con.print(f"wrote ablation_seeds.json to {root} (per-seed tables under {root}/seed<N>/)")
+
+
+@bench_app.command("learning-curve")
+def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs."),
+                             root: Path = typer.Option(..., "--root", help="Folder for one run directory per fraction."),
+                             config: str = typer.Option("paper", "--config", help="Configuration to train."),
+                             fractions: str = typer.Option("0.25,0.5,1", "--fractions",
+                                                           help="Comma-separated fractions of the training shapes."),
+                             epochs: int = typer.Option(30, "--epochs", help="Max epochs per fraction."),
+                             batch_size: int = typer.Option(8, "--batch-size", help="Graphs per batch."),
+                             sr: float = typer.Option(1.0, "--sr", help="Supervision ratio."),
+                             split: str = typer.Option("shape", "--split", help="shape | lovo:P=10 | source."),
+                             seed: int = typer.Option(0, "--seed", help="Seed of split, subsets and training."),
+                             target_md: float = typer.Option(0.15, "--target-md", help="MD target, mm."),
+                             target_hd: float = typer.Option(0.6, "--target-hd", help="HD target, mm."),
+                             target_dsc: float = typer.Option(0.99, "--target-dsc", help="DSC@1mm target."),
+                             device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
+                             as_json: bool = typer.Option(False, "--json", help="Print the result as JSON.")):
+    """Train one configuration on growing fractions of the training shapes, evaluate each on the same
+    test shapes, fit error ∝ pairs^(−b) and extrapolate the pairs a target would take."""
+    from storage.store import inspect_store
+    from trainer.config import TrainConfig, TrainerError, named_config
+    from trainer.learning_curve import parse_fractions, run_learning_curve
+    from trainer.splits import parse_split
+
+    try:
+        values = parse_fractions(fractions)
+        model = named_config(config)
+        parse_split(split)
+        if device not in ("cpu", "cuda"):
+            raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+        if not (target_md > 0 and target_hd > 0 and 0 < target_dsc < 1):
+            raise TrainerError("--target-md and --target-hd must be > 0 mm and --target-dsc in (0, 1)")
+        if inspect_store(store) is None:
+            raise TrainerError(f"no heartctl store at {store}")
+        if root.exists() and not root.is_dir():
+            raise TrainerError(f"--root {root} is a file")
+        base = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed, epochs=epochs,
+                           batch_size=batch_size)
+        targets = {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc}
+        result = run_learning_curve(base, values, root, targets, device, lambda line: typer.echo(line, err=True))
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    if as_json:
+        typer.echo(json.dumps(result))
+        return
+    _print_learning_curve(result, root)
+
+
+def _print_learning_curve(result: dict, root: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"{result['config']} on {result['store']}: test split ({result['test_cases']} cases), "
+                        f"split {result['split']}, SR {result['sr']:g}, ≤ {result['epochs']} epochs, seed {result['seed']}")
+    for col in ("fraction", "train pairs", "MD mm", "HD mm", "SD mm", "DSC@1mm", "epochs"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        table.add_row(f"{r['fraction']:g}", str(r["train_cases"]), f"{r['md_mm']:.3f}", f"{r['hd_mm']:.3f}",
+                      f"{r['sd_mm']:.3f}", f"{r['dsc_1mm']:.3f}", f"{r['best_epoch']}/{r['epochs']}")
+    con = Console(width=160)
+    con.print(table)
+    labels = {"md_mm": ("MD", "mm"), "hd_mm": ("HD", "mm"), "dsc_1mm": ("1 − DSC@1mm", "")}
+    for key, law in result["laws"].items():
+        name, unit = labels[key]
+        target = result["targets"][key]
+        goal = f"DSC@1mm {target:g}" if key == "dsc_1mm" else f"{name} {target:g} {unit}"
+        need = result["pairs_needed"].get(key)
+        reach = (f"~{need:,.0f} training pairs for {goal}" if need is not None
+                 else f"{goal} is not reached: the error does not fall with more data")
+        con.print(f"{name} ≈ {law['a']:.3g} · pairs^(−{law['b']:.2f}) (R² {law['r2']:.2f}): {reach}")
+    con.print("(an extrapolation from these points at this epoch budget, an order of magnitude at best)")
+    con.print(f"wrote learning_curve.csv and learning_curve.json to {root}")
 
 
 # --- end of training and evaluation (issue 4) ---

@@ -37,3 +37,20 @@ def test_summarise_one_seed_has_zero_sd():
     s = summarise_seeds([_result(4, {"A1": 1.0, "paper": 1.0})])
     assert s["configs"]["A1"]["md_mm"]["sd"] == 0.0
     assert s["pairs"]["paper vs A1"]["md_mm"]["better_seeds"] == 0  # a tie is not a win
+
+
+def test_learning_curve_power_law_by_hand():
+    from trainer.config import TrainerError
+    from trainer.learning_curve import fit_power_law, pairs_for, parse_fractions
+
+    n = [100, 200, 400, 800]
+    law = fit_power_law(n, [3.0 * v ** -0.5 for v in n])
+    assert law["a"] == pytest.approx(3.0) and law["b"] == pytest.approx(0.5) and law["r2"] == pytest.approx(1.0)
+    assert pairs_for(law, 0.15) == pytest.approx((3.0 / 0.15) ** 2)  # 400 pairs
+    assert pairs_for(fit_power_law([10, 20], [1.0, 1.2]), 0.5) is None  # error grows: never reached
+    assert parse_fractions("1, 0.25,0.5,0.25") == [0.25, 0.5, 1.0]
+    for bad in ("1", "0,1", "0.5,2", "a,b", "0.5,nan"):
+        with pytest.raises(TrainerError, match="fractions"):
+            parse_fractions(bad)
+    with pytest.raises(TrainerError, match="distinct"):
+        fit_power_law([10, 10], [1.0, 0.9])

@@ -217,3 +217,28 @@ def test_bench_ablation_over_seeds(trained, tmp_path):
         assert_bad_input(run("bench", "ablation", "--store", trained["store"], "--root", tmp_path / "y",
                              "--configs", "pca", "--seeds", bad), words)
     assert not (tmp_path / "y").exists()
+
+
+def test_bench_learning_curve(trained, tmp_path):
+    """Two fractions of the training shapes: the smaller one trains on fewer pairs, both on the same
+    test cases; the fitted law and files come out; bad fractions or targets → exit 2, nothing made."""
+    root = tmp_path / "lc"
+    r = run("bench", "learning-curve", "--store", trained["store"], "--root", root, "--config", "pca",
+            "--fractions", "0.34,1", "--json")
+    assert r.exit_code == 0, r.output
+    res = json.loads(r.output.strip().splitlines()[-1])
+    small, full = res["rows"]
+    assert small["train_cases"] < full["train_cases"] and small["cases"] == full["cases"] > 0
+    assert {"md_mm", "hd_mm"} <= set(res["laws"]) and set(res["pairs_needed"]) == set(res["laws"])
+    assert (root / "learning_curve.csv").is_file() and (root / "frac0.34" / "checkpoint.pt").is_file()
+    r = run("bench", "learning-curve", "--store", trained["store"], "--root", root, "--config", "pca",
+            "--fractions", "0.34,1")
+    assert r.exit_code == 0, r.output
+    assert "pairs^(" in r.output and "learning_curve.json" in r.output  # a rerun resumes and prints the fit
+    for args, words in ((("--fractions", "1"), "at least two"), (("--fractions", "0,1"), "(0, 1]"),
+                        (("--target-dsc", "1"), "target-dsc"), (("--config", "B7"), "unknown --config")):
+        assert_bad_input(run("bench", "learning-curve", "--store", trained["store"], "--root", tmp_path / "bad",
+                             *args), words)
+    assert not (tmp_path / "bad").exists()
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "t", "--no-ray",
+                         "--train-fraction", "0"), "train-fraction")

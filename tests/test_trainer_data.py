@@ -8,7 +8,7 @@ import torch
 
 from trainer.config import TrainerError
 from trainer.data import Normalisation, build_training_data, read_store
-from trainer.splits import make_split, parse_split, supervised_subset
+from trainer.splits import make_split, parse_split, subsample_shapes, supervised_subset
 from trainer_fixtures import make_tiny_store
 
 
@@ -109,3 +109,29 @@ def test_supervision_ratio_really_removes_labels(store):
         from trainer.config import TrainConfig
 
         TrainConfig(store=store, sr=0.0)
+
+
+def test_train_fraction_keeps_whole_nested_training_shapes(store):
+    """--train-fraction: whole training shapes are dropped (never val or test ones), at least one
+    shape stays, a smaller fraction keeps a subset of a larger one's shapes, and the normalisation
+    follows the kept training cases."""
+    full = build_training_data(store, "lovo:P=12", seed=0)
+    train_shapes = sorted({k[0] for k in full.split["train"]})
+    assert len(train_shapes) == 5
+    kept = {}
+    for f in (0.2, 0.6, 1.0):
+        b = build_training_data(store, "lovo:P=12", seed=0, train_fraction=f)
+        assert b.split["val"] == full.split["val"] and b.split["test"] == full.split["test"]
+        kept[f] = {k[0] for k in b.split["train"]}
+        assert len(kept[f]) == max(1, round(f * 5))
+        assert b.split["train"] == [k for k in full.split["train"] if k[0] in kept[f]]  # whole shapes
+    assert kept[0.2] < kept[0.6] < kept[1.0]
+    small = build_training_data(store, "lovo:P=12", seed=0, train_fraction=0.2)
+    assert len(small.train) == len(small.split["train"]) and small.norm.scale_mm != full.norm.scale_mm
+    assert subsample_shapes(full.split["train"], 0.01, 0) and subsample_shapes([], 0.5, 0) == []
+    from trainer.config import TrainConfig
+
+    for bad in (0.0, 1.5, float("nan")):
+        with pytest.raises(TrainerError, match="train-fraction"):
+            TrainConfig(store="s", train_fraction=bad)
+    assert TrainConfig(store="s").identity() != TrainConfig(store="s", train_fraction=0.5).identity()

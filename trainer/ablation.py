@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 
 from .config import TrainConfig, TrainerError, named_config
-from .data import build_training_data
+from .data import training_data
 from .evaluate import evaluate_run
 from .files import write_csv, write_json
 from .loop import Dist, fit
@@ -36,25 +36,30 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
     models = {name: named_config(name) for name in configs}  # unknown names fail before any training
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    bundle = build_training_data(base.store, base.split, base.seed, base.sr)
-    dev = torch.device(device)
+    bundle = training_data(base)
     rows = []
     for name, model in models.items():
-        cfg = replace(base, config_name=name, model=model)
         run_dir = root / run_name(name, base.sr)
         log(f"--- {name} → {run_dir}")
-        summary = fit(cfg, run_dir, Dist(device=dev, log=log), bundle=bundle)
-        report = evaluate_run(run_dir, base.store, "test", device, plots=False)
-        rows.append({"config": name, **{k: report["summary"][k] for k in ("md_mm", "hd_mm", "sd_mm", "dsc_1mm",
-                                                                           "dsc_01mm", "ms_per_case", "cases")},
-                     "nn_md_mm": report["nn_md_mm"], "epochs": summary["epoch"], "best_epoch": summary["best_epoch"],
-                     "parameters": summary["n_parameters"], "labelled_cases": summary["labelled_cases"],
-                     "train_cases": summary["train_cases"]})
+        rows.append({"config": name, **row_from_run(replace(base, config_name=name, model=model), run_dir, device,
+                                                    log, bundle)})
     result = {"store": base.store, "split": base.split, "sr": base.sr, "seed": base.seed, "epochs": base.epochs,
               "rows": rows, "best": best_per_metric(rows)}
     write_csv(root / "ablation.csv", rows)
     write_json(root / "ablation.json", result)
     return result
+
+
+def row_from_run(cfg: TrainConfig, run_dir: Path, device: str = "cpu", log=print, bundle=None) -> dict:
+    """Train (or resume) cfg in run_dir with the plain loop, evaluate it on the test split, and return
+    the table row: the TABLE_METRICS, ms per case, test cases, epochs, parameters, training cases."""
+    summary = fit(cfg, run_dir, Dist(device=torch.device(device), log=log), bundle=bundle)
+    report = evaluate_run(run_dir, cfg.store, "test", device, plots=False)
+    return {**{k: report["summary"][k] for k in ("md_mm", "hd_mm", "sd_mm", "dsc_1mm", "dsc_01mm", "ms_per_case",
+                                                 "cases")},
+            "nn_md_mm": report["nn_md_mm"], "epochs": summary["epoch"], "best_epoch": summary["best_epoch"],
+            "parameters": summary["n_parameters"], "labelled_cases": summary["labelled_cases"],
+            "train_cases": summary["train_cases"]}
 
 
 def run_ablation_seeds(base: TrainConfig, configs: list, seeds: list, root: Path, device: str = "cpu",

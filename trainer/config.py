@@ -164,6 +164,7 @@ class TrainConfig:
     model: ModelConfig = PAPER
     split: str = "shape"
     sr: float = 1.0  # supervision ratio: fraction of training cases whose label is used
+    train_fraction: float = 1.0  # fraction of the training shapes kept (learning curves; trainer.splits)
     labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
     seed: int = 0
     epochs: int = 500
@@ -180,6 +181,8 @@ class TrainConfig:
     def __post_init__(self):
         if not 0 < self.sr <= 1:
             raise TrainerError(f"--sr must be in (0, 1], got {self.sr}")
+        if not 0 < self.train_fraction <= 1:
+            raise TrainerError(f"--train-fraction must be in (0, 1], got {self.train_fraction}")
         if self.epochs < 1:
             raise TrainerError(f"--epochs must be ≥ 1, got {self.epochs}")
         if self.batch_size < 1:
@@ -204,4 +207,5 @@ class TrainConfig:
     def identity(self) -> dict:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
-        return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed}
+        return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed,
+                "train_fraction": self.train_fraction}

@@ -12,7 +12,7 @@ from torch_geometric.data import Data
 from storage.store import PARAM_NAMES, PairReader, StoreError
 
 from .config import TrainerError
-from .splits import make_split, supervised_subset
+from .splits import make_split, subsample_shapes, supervised_subset
 
 N_REGIONS = 6  # base / mid / apex × endo / epi half of the wall
 TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
@@ -257,13 +257,15 @@ def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: s
 
 
 def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 1.0,
-                        cases: StoreCases | None = None) -> DataBundle:
-    """Read the store, split it, withhold labels outside the SR subset, fit the normalisation on
-    the training split (ED coordinates of every training case; displacements of labelled ones)."""
+                        cases: StoreCases | None = None, train_fraction: float = 1.0) -> DataBundle:
+    """Read the store, split it, keep `train_fraction` of the training shapes (learning curves),
+    withhold labels outside the SR subset, fit the normalisation on the training split (ED
+    coordinates of every training case; displacements of labelled ones)."""
     cases = cases or read_store(store)
     if not cases.params:
         raise TrainerError(f"store {store} has no done cases to train on")
     parts = make_split(cases.keys, cases.params, split, seed, cases.attrs)
+    parts["train"] = subsample_shapes(parts["train"], train_fraction, seed)
     labelled = supervised_subset(parts["train"], sr, seed)
     train_ed = [cases.ed(k) for k in parts["train"]]
     train_disp = [cases.displacement(k) for k in parts["train"] if k in labelled]
@@ -271,3 +273,8 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
     return DataBundle(build_graphs(cases, parts["train"], norm, labelled), build_graphs(cases, parts["val"], norm),
                       build_graphs(cases, parts["test"], norm), norm, parts, labelled,
                       store_fingerprint(cases.attrs, cases.features), cases)
+
+
+def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:
+    """build_training_data for a TrainConfig (store, split, seed, SR, training-shape fraction)."""
+    return build_training_data(cfg.store, cfg.split, cfg.seed, cfg.sr, cases, cfg.train_fraction)

@@ -17,7 +17,7 @@ from ._malloc import tune_allocator
 from .averaging import WeightAverage
 from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
-from .data import DataBundle, build_training_data, check_fingerprint
+from .data import DataBundle, training_data, check_fingerprint
 from .files import write_csv, write_json
 from .model import build_model, count_parameters, loss_terms
 from .sampling import MixedBatchSampler, labelled_per_batch
@@ -203,7 +203,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         torch.set_num_threads(cfg.num_threads)
     seed_everything(cfg.seed)
     t0 = time.perf_counter()
-    bundle = bundle or build_training_data(cfg.store, cfg.split, cfg.seed, cfg.sr)
+    bundle = bundle or training_data(cfg)
     local = run_checkpoint_path(run_dir)
     if dist.restore is not None:
         state = dist.restore()
@@ -255,7 +255,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     if writes:
         write_metrics_csv(run_dir / "metrics.csv", history)
     if dist.is_main:
-        dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases "
+        kept = f" of {cfg.train_fraction:g} of the training shapes" if cfg.train_fraction < 1 else ""
+        dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases{kept} "
                  f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
                  f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}")
         if isinstance(sampler, MixedBatchSampler):

@@ -136,6 +136,19 @@ def source_shape_sets(attrs: dict) -> dict:
     return sets
 
 
+def subsample_shapes(train: list, fraction: float, seed: int) -> list:
+    """The training cases of round(fraction · n) of the training shapes (at least 1), seeded; for
+    learning curves. Validation and test are left as they are. The kept shapes are a prefix of one
+    seeded order, so a smaller fraction keeps a subset of a larger one's shapes (nested curves)."""
+    if fraction >= 1.0:
+        return sorted(train)
+    shapes = sorted({k[0] for k in train})
+    n = max(1, int(round(fraction * len(shapes))))
+    rng = np.random.default_rng([seed, 3])
+    kept = {shapes[i] for i in rng.permutation(len(shapes))[:n]}
+    return sorted(k for k in train if k[0] in kept)
+
+
 def supervised_subset(train: list, sr: float, seed: int) -> set:
     """The training cases that keep their label: round(SR · n) of them (at least 1), seeded.
     The others contribute only the cycle term (their targets are removed from the graphs)."""
