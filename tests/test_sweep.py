@@ -77,8 +77,22 @@ def inspect_runs(loc):
     return zarr.open_group(loc, mode="r").attrs["runs"]
 
 
+def _descends_from(pid: int, ancestor: int) -> bool:
+    while pid > 1:
+        if pid == ancestor:
+            return True
+        try:
+            stat = (Path("/proc") / str(pid) / "stat").read_text()
+        except OSError:
+            return False
+        pid = int(stat.rsplit(")", 1)[1].split()[1])  # field 4, after the parenthesised name
+    return False
+
+
 def _busy_case_workers() -> list[int]:
-    """PIDs of Ray worker processes currently running a pair (process title ray::run_case)."""
+    """PIDs of this test's Ray worker processes currently running a pair (process title
+    ray::run_case); the local Ray started by the fixture descends from this process, so other
+    Ray jobs on the machine are left alone."""
     pids = []
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
@@ -87,7 +101,7 @@ def _busy_case_workers() -> list[int]:
             cmd = (d / "cmdline").read_bytes()
         except OSError:
             continue
-        if cmd.startswith(b"ray::run_case"):
+        if cmd.startswith(b"ray::run_case") and _descends_from(int(d.name), os.getpid()):
             pids.append(int(d.name))
     return pids
 
