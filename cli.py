@@ -362,6 +362,19 @@ def _trainer_errors():
     return (TrainerError, StoreError, ValueError, FileNotFoundError, NotADirectoryError)
 
 
+def _check_training_device(device: str) -> None:
+    """TrainerError unless device is cpu, or cuda with a CUDA device present."""
+    from trainer.config import TrainerError
+
+    if device not in ("cpu", "cuda"):
+        raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise TrainerError("--device cuda: no CUDA device is available here")
+
+
 def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity: str, base: str, tol_mm, units: str,
                          fibres: str, asked: dict):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
@@ -656,13 +669,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
         except ValueError:
             raise TrainerError(f"--seeds must be comma-separated integers, got {seeds!r}") from None
         parse_split(split)
-        if device not in ("cpu", "cuda"):
-            raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
-        if device == "cuda":
-            import torch
-
-            if not torch.cuda.is_available():
-                raise TrainerError("--device cuda: no CUDA device is available here")
+        _check_training_device(device)
         if inspect_store(store) is None:
             raise TrainerError(f"no heartctl store at {store}")
         if root.exists() and not root.is_dir():
@@ -761,8 +768,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
         values = parse_fractions(fractions)
         model = named_config(config)
         parse_split(split)
-        if device not in ("cpu", "cuda"):
-            raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+        _check_training_device(device)
         if not (target_md > 0 and target_hd > 0 and 0 < target_dsc < 1):
             raise TrainerError("--target-md and --target-hd must be > 0 mm and --target-dsc in (0, 1)")
         if inspect_store(store) is None:

@@ -15,6 +15,7 @@ import numpy as np
 
 from .ablation import row_from_run
 from .config import TrainConfig, TrainerError
+from .data import read_store, training_data
 from .files import write_csv, write_json
 
 CURVE_METRICS = ("md_mm", "hd_mm", "dsc_1mm")  # fitted: error-like ones as is, DSC as 1 − DSC
@@ -62,12 +63,13 @@ def run_learning_curve(base: TrainConfig, fractions: list, root: Path, targets: 
     learning_curve.csv and learning_curve.json under root."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
+    cases = read_store(base.store)  # once, for every fraction
     rows = []
     for f in fractions:
         cfg = replace(base, train_fraction=f)
         run_dir = root / f"frac{f:g}"
         log(f"--- {base.config_name}, {f:g} of the training shapes → {run_dir}")
-        rows.append({"fraction": f, **row_from_run(cfg, run_dir, device, log)})
+        rows.append({"fraction": f, **row_from_run(cfg, run_dir, device, log, training_data(cfg, cases))})
     if len({r["train_cases"] for r in rows}) < 2:
         raise TrainerError("every fraction kept the same training cases; the split has too few training shapes "
                            "for these fractions")
