@@ -4,6 +4,7 @@ evaluation metrics against hand-computed values."""
 from __future__ import annotations
 
 import csv
+import os
 import pickle
 from dataclasses import replace
 
@@ -76,6 +77,10 @@ def test_checkpoints_load_without_unpickling_objects(tmp_path):
     save_checkpoint(good, {"kind": "gnn", "train_config": {}, "normalisation": {}, "fingerprint": {}, "split": {},
                            "epoch": 1, "model": {"w": torch.ones(2)}})
     assert load_checkpoint(good)["model"]["w"].sum() == 2
+    umask = os.umask(0)
+    os.umask(umask)
+    assert good.stat().st_mode & 0o777 == 0o666 & ~umask  # an ordinary file, like the run's other files
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["good.pt"]  # no temporary file left
     evil = tmp_path / "evil.pt"
     torch.save({"format": "heartctl.trainer.checkpoint", "payload": _Evil()}, evil)  # an arbitrary object
     with pytest.raises(TrainerError, match="cannot read checkpoint"):
@@ -109,7 +114,6 @@ def test_result_files_are_whole_or_absent(tmp_path):
     """write_csv / write_json: an ordinary file mode (not mkstemp's 0600), and a writer that fails
     leaves neither the target nor its temporary file."""
     import json
-    import os
 
     from trainer.files import write_csv, write_json
 

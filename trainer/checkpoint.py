@@ -3,10 +3,11 @@ torch.save and read back with torch.load(weights_only=True), so no arbitrary obj
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import torch
+
+from storage.meshfiles import atomic_write
 
 from .config import TrainerError
 
@@ -20,15 +21,7 @@ def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
     """Write `state` (with format/version added) to `path` via a temporary file and a rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save({"format": FORMAT, "version": VERSION, **state}, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    atomic_write(path, lambda tmp: torch.save({"format": FORMAT, "version": VERSION, **state}, tmp))
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
