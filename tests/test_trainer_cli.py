@@ -236,7 +236,8 @@ def test_bench_learning_curve(trained, tmp_path):
     assert r.exit_code == 0, r.output
     assert "pairs^(" in r.output and "learning_curve.json" in r.output  # a rerun resumes and prints the fit
     for args, words in ((("--fractions", "1"), "at least two"), (("--fractions", "0,1"), "(0, 1]"),
-                        (("--target-dsc", "1"), "target-dsc"), (("--config", "B7"), "unknown --config")):
+                        (("--target-dsc", "1"), "target-dsc"), (("--config", "B7"), "unknown --config"),
+                        (("--fractions", "0.3,0.34"), "same training cases")):  # both keep 1 of 3 shapes
         assert_bad_input(run("bench", "learning-curve", "--store", trained["store"], "--root", tmp_path / "bad",
                              *args), words)
     assert not (tmp_path / "bad").exists()

@@ -17,6 +17,7 @@ from .ablation import row_from_run
 from .config import TrainConfig, TrainerError
 from .data import read_store, training_data
 from .files import write_csv, write_json
+from .splits import make_split, subsample_shapes
 
 CURVE_METRICS = ("md_mm", "hd_mm", "dsc_1mm")  # fitted: error-like ones as is, DSC as 1 − DSC
 
@@ -61,18 +62,19 @@ def run_learning_curve(base: TrainConfig, fractions: list, root: Path, targets: 
     rerun resumes), evaluate on the test split, fit MD, HD and 1 − DSC@1mm against the number of
     training pairs. `targets` = {"md_mm": 0.15, "hd_mm": 0.6, "dsc_1mm": 0.99}. Writes
     learning_curve.csv and learning_curve.json under root."""
+    cases = read_store(base.store)  # once, for every fraction
+    train = make_split(cases.keys, cases.params, base.split, base.seed, cases.attrs)["train"]
+    if len({len(subsample_shapes(train, f, base.seed)) for f in fractions}) < 2:  # before any training
+        raise TrainerError("every fraction keeps the same training cases; the split has too few training shapes "
+                           "for these fractions")
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    cases = read_store(base.store)  # once, for every fraction
     rows = []
     for f in fractions:
         cfg = replace(base, train_fraction=f)
         run_dir = root / f"frac{f:g}"
         log(f"--- {base.config_name}, {f:g} of the training shapes → {run_dir}")
         rows.append({"fraction": f, **row_from_run(cfg, run_dir, device, log, training_data(cfg, cases))})
-    if len({r["train_cases"] for r in rows}) < 2:
-        raise TrainerError("every fraction kept the same training cases; the split has too few training shapes "
-                           "for these fractions")
     n = [r["train_cases"] for r in rows]
     laws, needed = {}, {}
     for key in CURVE_METRICS:

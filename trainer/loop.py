@@ -17,7 +17,7 @@ from ._malloc import tune_allocator
 from .averaging import WeightAverage
 from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
-from .data import DataBundle, training_data, check_fingerprint
+from .data import DataBundle, check_fingerprint, training_data
 from .files import write_csv, write_json
 from .model import build_model, count_parameters, loss_terms
 from .sampling import MixedBatchSampler, labelled_per_batch
