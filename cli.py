@@ -423,6 +423,9 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                                help="Train on this fraction of the training shapes (seeded; "
                                                     "validation and test unchanged)."),
           seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset, initialisation and shuffling."),
+          rotate_deg: float = typer.Option(0.0, "--rotate-deg",
+                                           help="Augment: turn each training graph about the long axis by a random "
+                                                "angle in ±DEG (exact new FE pairs; 0 = off)."),
           local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
           no_ray: bool = typer.Option(False, "--no-ray", help="Run the plain PyTorch loop in this process (no Ray)."),
           device: str = typer.Option(None, "--device", help="With --no-ray: cpu | cuda (default cuda when available)."),
@@ -459,7 +462,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         run_dir = run_dir.resolve()
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
                           train_fraction=train_fraction, labelled_share=labelled_share, seed=seed,
-                          epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size,
+                          rotate_deg=rotate_deg, epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size,
                           lr=lr, patience=patience, bf16=bf16)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")

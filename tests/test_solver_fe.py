@@ -175,3 +175,18 @@ def test_heartfem_base_removes_rigid_motion_over_the_wall(coarse_lv):
     assert np.abs(np.einsum("eqi,eq->i", u, cq.dV)[:2]).max() < 1e-8 * scale
     assert np.abs(np.einsum("eqi,eq->i", np.cross(X, u), cq.dV)).max() < 1e-8 * scale * lever
     assert np.abs(result.displacement).max() > 1.0  # it did inflate
+
+
+def test_unloading_is_equivariant_under_rotation_about_the_long_axis(coarse_lv):
+    """What trainer.augment relies on: turning the ED mesh about a line parallel to z turns its
+    unloaded geometry the same way (sliding base, in-plane gauge, fibres from geometry and e_z)."""
+    params = CaseParameters(12.0, 100.0, 60.0, -60.0)
+    phi, pivot = np.radians(40.0), np.array([3.0, -2.0, 0.0])
+    rot = np.array([[np.cos(phi), -np.sin(phi), 0.0], [np.sin(phi), np.cos(phi), 0.0], [0.0, 0.0, 1.0]])
+    turned = coarse_lv.with_nodes((coarse_lv.nodes - pivot) @ rot.T + pivot)
+    unloaded = inverse_solve(coarse_lv, params, "fast").unloaded_nodes
+    unloaded_turned = inverse_solve(turned, params, "fast").unloaded_nodes
+    expected = (unloaded - pivot) @ rot.T + pivot
+    shift = np.linalg.norm(unloaded - coarse_lv.nodes, axis=1).max()
+    assert shift > 1.0  # a real unloading, mm
+    assert np.linalg.norm(unloaded_turned - expected, axis=1).max() < 1e-6  # measured 2e-14

@@ -134,6 +134,7 @@ def test_mismatched_store(trained):
     (("--no-ray", "--config", "A7"), ("--config",)),
     (("--no-ray", "--sr", "0"), ("--sr",)),
     (("--no-ray", "--epochs", "0"), ("--epochs",)),
+    (("--no-ray", "--rotate-deg", "200"), ("--rotate-deg", "[0, 180]")),
     (("--gpus", "1"), ("--gpus",)),
     (("--local", "--no-ray"), ("--no-ray",)),
 ])

@@ -56,15 +56,18 @@ def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
         fit(_cfg(store, epochs=3, sr=0.5), run)
     with pytest.raises(TrainerError, match="another"):
         fit(_cfg(store, epochs=3, model=replace(SMALL, cycle=False)), run)
+    with pytest.raises(TrainerError, match="another rotate_deg"):
+        fit(_cfg(store, epochs=3, rotate_deg=10.0), run)
 
 
 def test_resumed_run_equals_an_uninterrupted_one(store, tmp_path):
-    """Dropout draws, optimiser, scheduler and weight average all continue where they stopped: two
-    epochs in one go and one epoch + a resumed second give the same weights (one thread, CPU)."""
+    """Dropout draws, rotation angles, optimiser, scheduler and weight average all continue where
+    they stopped: two epochs in one go and one epoch + a resumed second give the same weights (one
+    thread, CPU)."""
     model = replace(SMALL, ema_decay=0.9, reverse_weight=1.0, cycle_grad="teacher")
-    fit(_cfg(store, model=model), tmp_path / "once")
-    fit(_cfg(store, model=model, epochs=1), tmp_path / "twice")
-    fit(_cfg(store, model=model), tmp_path / "twice")
+    fit(_cfg(store, model=model, rotate_deg=30.0), tmp_path / "once")
+    fit(_cfg(store, model=model, rotate_deg=30.0, epochs=1), tmp_path / "twice")
+    fit(_cfg(store, model=model, rotate_deg=30.0), tmp_path / "twice")
     once, twice = load_run(tmp_path / "once"), load_run(tmp_path / "twice")
     for part in ("model", "best_model"):
         for name, w in once[part].items():

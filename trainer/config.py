@@ -166,6 +166,7 @@ class TrainConfig:
     sr: float = 1.0  # supervision ratio: fraction of training cases whose label is used
     train_fraction: float = 1.0  # fraction of the training shapes kept (learning curves; trainer.splits)
     labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
+    rotate_deg: float = 0.0  # augmentation: each training graph turned about the long axis by ±rotate_deg (trainer.augment)
     seed: int = 0
     epochs: int = 500
     batch_size: int = 16
@@ -191,6 +192,8 @@ class TrainConfig:
             raise TrainerError(f"--labelled-share must be in [0, 1), got {self.labelled_share}")
         if self.seed < 0:
             raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
+        if not 0 <= self.rotate_deg <= 180:
+            raise TrainerError(f"--rotate-deg must be in [0, 180], got {self.rotate_deg}")
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -208,4 +211,4 @@ class TrainConfig:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
         return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed,
-                "train_fraction": self.train_fraction}
+                "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg}

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ._malloc import tune_allocator
+from .augment import rotate_batch
 from .averaging import WeightAverage
 from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
@@ -258,7 +259,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         kept = f" of {cfg.train_fraction:g} of the training shapes" if cfg.train_fraction < 1 else ""
         dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases{kept} "
                  f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
-                 f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}")
+                 f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}"
+                 + (f"; training graphs turned about the long axis by up to ±{cfg.rotate_deg:g}°" if cfg.rotate_deg else ""))
         if isinstance(sampler, MixedBatchSampler):
             dist.log(f"batches of {sampler.n_labelled} labelled + {sampler.n_unlabelled} unlabelled cases "
                      f"({len(sampler)} per epoch and process)")
@@ -270,8 +272,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         sampler.set_epoch(epoch)
         wrapped.train()
         sums = [0.0, 0.0, 0.0, 0.0]  # loss·graphs, sup·graphs, cycle·graphs, graphs
+        aug_gen = torch.Generator().manual_seed((cfg.seed * 100003 + epoch) * 1009 + dist.rank)
         for batch in train_loader:
-            batch = _move(batch, dist.device)
+            batch = rotate_batch(_move(batch, dist.device), cfg.rotate_deg, aug_gen)
             opt.zero_grad(set_to_none=True)
             with _autocast(cfg, dist.device):
                 d_unl, d_ed, d_rev = wrapped(batch, reverse=True, teacher=average.teacher() if uses_teacher else None)
