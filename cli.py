@@ -160,6 +160,8 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
            fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
            tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4)."),
            run: Path = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid)."),
+           rotations: int = typer.Option(1, "--rotations", help="--method gnn|hybrid: average the network over K turns "
+                                                                "about the long axis (K× the time; best with --rotate-deg 180 runs)."),
            fibres: str = FibresOpt):
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
     from solver.forward import SolveError
@@ -172,6 +174,8 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         if tol_mm is not None and not tol_mm > 0:
             raise ValueError(f"--tol-mm must be > 0, got {tol_mm}")
         _check_fibres(fibres)
+        if rotations < 1 or (rotations > 1 and method is UnloadMethod.fe):
+            raise ValueError(f"--rotations must be ≥ 1 and applies to --method gnn|hybrid, got {rotations}")
         if (run is None) != (method is UnloadMethod.fe):
             raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
         lv = read_mesh(mesh_path, units.value)
@@ -183,7 +187,7 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         asked = {name: value for name, value in (("base", base.value), ("fibres", fibres))
                  if ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
         return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm,
-                                    units.value, fibres, asked)
+                                    units.value, fibres, asked, rotations)
     try:
         result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm, fibres=fibres)
     except SolveError as exc:
@@ -376,14 +380,15 @@ def _check_training_device(device: str) -> None:
 
 
 def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity: str, base: str, tol_mm, units: str,
-                         fibres: str, asked: dict):
+                         fibres: str, asked: dict, rotations: int = 1):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
     from solver.forward import SolveError
     from storage.meshfiles import write_mesh
     from trainer.predict import unload_with_network
 
     try:
-        result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm, fibres=fibres, asked=asked)
+        result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm, fibres=fibres, asked=asked,
+                                     rotations=rotations)
     except SolveError as exc:
         fail(f"inverse solve did not converge: {exc}", code=1)
     except _trainer_errors() as exc:
@@ -548,6 +553,8 @@ def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartct
              device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
              out: Path = typer.Option(None, "--out", help="Output folder (default RUN/eval_SPLIT)."),
              plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots (needs matplotlib)."),
+             rotations: int = typer.Option(1, "--rotations", help="Average the network over K turns about the long "
+                                                                  "axis (K× the time; best with runs trained with --rotate-deg 180)."),
              as_json: bool = typer.Option(False, "--json", help='One JSON object: {"dsc_1mm": …, "hd_mm": …, "cases": N}.')):
     """Metrics of a trained run on its store: DSC@1 mm / 0.1 mm, HD, MD, SD (mm, mean ± SD), time per case."""
     from trainer.evaluate import evaluate_run
@@ -560,13 +567,13 @@ def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartct
 
             if not torch.cuda.is_available():
                 raise ValueError("--device cuda: no CUDA device is available here")
-        report = evaluate_run(run, store, split, device, out, plots)
+        report = evaluate_run(run, store, split, device, out, plots, rotations=rotations)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json.dumps({**report["summary"], "nn_md_mm": report["nn_md_mm"],
                                "ms_per_case_batched": report["ms_per_case_batched"], "split": split,
-                               "config": report["config"]}))
+                               "config": report["config"], "rotations": report["rotations"]}))
         return
     from rich.console import Console
     from rich.table import Table
@@ -584,7 +591,8 @@ def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartct
     con = Console(width=160)
     con.print(table)
     con.print(f"inference: {report['summary']['ms_per_case']:.2f} ms per case at batch 1, "
-              f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})")
+              f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})"
+              + (f", each the mean of {report['rotations']} turns about the long axis" if report["rotations"] > 1 else ""))
     worst = max(report["by_parameter"], key=lambda r: r["md_mm_mean"])
     con.print(f"per parameter value: worst MD {worst['md_mm_mean']:.3f} mm at {worst['parameter']} = {worst['value']:g} "
               f"({worst['cases']} cases); see by_parameter.csv")

@@ -71,6 +71,14 @@ def test_unload_gnn_and_hybrid(trained, tmp_path):
             "--base", "clamped", "--run", trained["run"], "--units", "cm", "-o", out)
     assert r.exit_code == 0, r.output
     assert "--base clamped: the network was trained on a store with base sliding" in r.output
+    out_avg = tmp_path / "averaged.vtu"
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method", "gnn",
+            "--rotations", 4, "--run", trained["run"], "--units", "cm", "-o", out_avg)
+    assert r.exit_code == 0, r.output
+    assert np.abs(meshio.read(out_avg).points - u.points).max() > 0  # averaged over turns: another answer
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method",
+                         "gnn", "--rotations", 0, "--run", trained["run"], "-o", tmp_path / "bad.vtu"), "--rotations")
+    assert not (tmp_path / "bad.vtu").exists()
     out2 = tmp_path / "hybrid.vtu"
     r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--endo", 60, "--epi", -60, "--method", "hybrid",
             "--fidelity", "fast", "--run", trained["run"], "--units", "cm", "-o", out2)

@@ -181,6 +181,33 @@ def test_evaluate_equals_hand_computed_metrics(store, tmp_path):
     assert len(_rows(out / "cases.csv")) == len(keys)
 
 
+def test_rotation_averaged_prediction_turns_with_the_mesh(store, tmp_path):
+    """Averaged over K turns about the long axis, the network's answer is exactly symmetric under a
+    turn by 2π/K of the input (about the normalisation centre); K = 1 is the plain network."""
+    from dataclasses import replace as dc_replace
+
+    from trainer.data import read_store
+
+    run = tmp_path / "run"
+    fit(_cfg(store, epochs=1), run)
+    state = load_run(run)
+    cases = read_store(store)
+    key = tuple(state["split"]["test"][0])
+    feat, params = cases.features[key[0]], cases.params[key]
+    centre = np.asarray(state["normalisation"]["centre_mm"])
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # a quarter turn about z
+    turned = dc_replace(feat, ed_mm=(feat.ed_mm - centre) @ rot.T + centre)
+    plain, averaged = Predictor(state), Predictor(state, rotations=4)
+    d, d_turned = averaged.predict(feat, params), averaged.predict(turned, params)
+    scale = np.abs(d).max()
+    np.testing.assert_allclose(d_turned, d @ rot.T, atol=1e-4 * scale)
+    assert np.abs(plain.predict(turned, params) - plain.predict(feat, params) @ rot.T).max() > 1e-3 * scale
+    np.testing.assert_array_equal(Predictor(state, rotations=1).predict(feat, params), plain.predict(feat, params))
+    assert averaged.time_ms_per_case([(feat, params, None)]) > 0
+    with pytest.raises(TrainerError, match="--rotations"):
+        Predictor(state, rotations=0)
+
+
 def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     run = tmp_path / "pca"
     fit(_cfg(store, config_name="pca", model=named_config("pca")), run)

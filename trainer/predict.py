@@ -2,6 +2,7 @@
 network (`gnn`) or by the network's guess refined with inverse FE (`hybrid`)."""
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 
@@ -9,16 +10,27 @@ import numpy as np
 import torch
 
 from ._malloc import tune_allocator
+from .augment import rotate_xy
 from .checkpoint import load_run
 from .config import TrainConfig, TrainerError
 from .data import MeshFeatures, Normalisation, case_graph, fingerprint_value, mesh_features
 
 
 class Predictor:
-    """Unloading displacement X − x_ED (mm) of ED meshes, from a run's best checkpoint."""
+    """Unloading displacement X − x_ED (mm) of ED meshes, from a run's best checkpoint.
 
-    def __init__(self, state: dict, device: str | torch.device = "cpu", which: str = "best_model"):
+    rotations K > 1: test-time averaging over the long-axis symmetry (trainer.augment). Each case is
+    predicted K times, turned about z by 2πj/K (j = 0…K−1) with every prediction turned back by
+    −2πj/K, and the K displacements are averaged: exact for the FE problem, it averages out the
+    network's lack of symmetry, at K times the inference cost. Best with a network trained with
+    `--rotate-deg 180`, which has seen every orientation (README: measured figures)."""
+
+    def __init__(self, state: dict, device: str | torch.device = "cpu", which: str = "best_model",
+                 rotations: int = 1):
         tune_allocator()
+        if int(rotations) < 1:
+            raise TrainerError(f"--rotations must be ≥ 1, got {rotations}")
+        self.rotations = int(rotations)
         self.state = state
         self.cfg = TrainConfig.from_dict(state["train_config"])
         self.norm = Normalisation.from_dict(state["normalisation"])
@@ -46,8 +58,8 @@ class Predictor:
             raise TrainerError(f"checkpoint of unknown kind {self.kind!r}")
 
     @classmethod
-    def from_run(cls, run_dir, device: str = "cpu") -> "Predictor":
-        return cls(load_run(run_dir), device)
+    def from_run(cls, run_dir, device: str = "cpu", rotations: int = 1) -> "Predictor":
+        return cls(load_run(run_dir), device, rotations=rotations)
 
     @property
     def run_label(self) -> str:
@@ -68,11 +80,25 @@ class Predictor:
         for i in range(0, len(items), batch_size):
             chunk = items[i:i + batch_size]
             batch = Batch.from_data_list([case_graph(f, p, self.norm) for f, p, _ in chunk]).to(self.device)
-            d, _ = self.model(batch, cycle=False)
+            d = self._forward(batch)
             d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
             sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
             out.extend(np.split(d, np.cumsum(sizes)[:-1]))
         return out
+
+    def _forward(self, batch) -> torch.Tensor:
+        """Normalised unloading displacement of a batch [N, 3], averaged over self.rotations turns."""
+        if self.rotations == 1:
+            return self.model(batch, cycle=False)[0]
+        x = batch.x
+        total = None
+        for j in range(self.rotations):
+            angle = torch.full((x.shape[0],), 2.0 * math.pi * j / self.rotations, device=x.device)
+            batch.x = rotate_xy(x, angle)
+            d = rotate_xy(self.model(batch, cycle=False)[0].float(), -angle)
+            total = d if total is None else total + d
+        batch.x = x
+        return total / self.rotations
 
     def predict(self, feat: MeshFeatures, params, key=None) -> np.ndarray:
         return self.predict_many([(feat, params, key)], 1)[0]
@@ -93,12 +119,12 @@ class Predictor:
                   for i in range(0, len(items), batch_size)]
         with torch.no_grad():
             for _ in range(warmup):
-                self.model(graphs[0], cycle=False)
+                self._forward(graphs[0])
             self.sync()
             t = time.perf_counter()
             for _ in range(repeats):
                 for g in graphs:
-                    self.model(g, cycle=False)
+                    self._forward(g)
             self.sync()
         return (time.perf_counter() - t) / (len(items) * repeats) * 1e3
 
@@ -131,17 +157,17 @@ def _model_warnings(pred: Predictor, asked: dict) -> list:
 
 def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: str = "accurate",
                         base: str = "sliding", tol_mm: float | None = None, device: str = "cpu",
-                        fibres: str = "laplace", asked: dict | None = None) -> dict:
+                        fibres: str = "laplace", asked: dict | None = None, rotations: int = 1) -> dict:
     """Unload an ED TetMesh (mm) at CaseParameters `params`.
 
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
     with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element).
     asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
-    differ from the training store's draw a warning. Returns {"unloaded_nodes", "network_ms",
+    differ from the training store's draw a warning. rotations: test-time averaging (Predictor). Returns {"unloaded_nodes", "network_ms",
     "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
     if method not in ("gnn", "hybrid"):
         raise TrainerError(f"unknown network method {method!r}")
-    pred = Predictor.from_run(Path(run_dir), device)
+    pred = Predictor.from_run(Path(run_dir), device, rotations)
     values = np.array([params.pressure_mmhg, params.stiffness_pa, params.helix_endo_deg, params.helix_epi_deg])
     feat = mesh_features(mesh)
     t = time.perf_counter()
