@@ -87,6 +87,8 @@ FidelityOpt = typer.Option(FidelityName.accurate, "--fidelity", help="Solver pre
 BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed), clamped, spring (sliding + epicardial normal spring), or heartfem (spring, rigid motions removed over the wall: the original paper's pipeline).")
 FibresOpt = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (ours) | heartfem (the original pipeline's distance rule).")
 UnitsOpt = typer.Option(Units.mm, "--units", help="Length unit of the input mesh; the output uses it too.")
+RotateDegOpt = typer.Option(0.0, "--rotate-deg", help="Augment: turn each training graph about the long axis by a "
+                                                      "random angle in ±DEG (exact new FE pairs; 0 = off).")
 
 
 @app.command()
@@ -428,9 +430,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                                help="Train on this fraction of the training shapes (seeded; "
                                                     "validation and test unchanged)."),
           seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset, initialisation and shuffling."),
-          rotate_deg: float = typer.Option(0.0, "--rotate-deg",
-                                           help="Augment: turn each training graph about the long axis by a random "
-                                                "angle in ±DEG (exact new FE pairs; 0 = off)."),
+          rotate_deg: float = RotateDegOpt,
           local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
           no_ray: bool = typer.Option(False, "--no-ray", help="Run the plain PyTorch loop in this process (no Ray)."),
           device: str = typer.Option(None, "--device", help="With --no-ray: cpu | cuda (default cuda when available)."),
@@ -666,6 +666,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
                                                  "ablation once per seed under ROOT/seed<N>, then mean ± SD and "
                                                  "seed-paired comparisons."),
                        device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
+                       rotate_deg: float = RotateDegOpt,
                        as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
     from storage.store import inspect_store
@@ -685,7 +686,8 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
             raise TrainerError(f"no heartctl store at {store}")
         if root.exists() and not root.is_dir():
             raise TrainerError(f"--root {root} is a file")
-        base = TrainConfig(store=store, model=PAPER, split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size)
+        base = TrainConfig(store=store, model=PAPER, split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size,
+                           rotate_deg=rotate_deg)
         log = lambda line: typer.echo(line, err=True)  # noqa: E731
         if seed_list:
             result = run_ablation_seeds(base, names, seed_list, root, device, log)
@@ -767,6 +769,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
                              target_hd: float = typer.Option(0.6, "--target-hd", help="HD target, mm."),
                              target_dsc: float = typer.Option(0.99, "--target-dsc", help="DSC@1mm target."),
                              device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
+                             rotate_deg: float = RotateDegOpt,
                              as_json: bool = typer.Option(False, "--json", help="Print the result as JSON.")):
     """Train one configuration on growing fractions of the training shapes, evaluate each on the same
     test shapes, fit error ∝ pairs^(−b) and extrapolate the pairs a target would take."""
@@ -787,7 +790,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
         if root.exists() and not root.is_dir():
             raise TrainerError(f"--root {root} is a file")
         base = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed, epochs=epochs,
-                           batch_size=batch_size)
+                           batch_size=batch_size, rotate_deg=rotate_deg)
         targets = {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc}
         result = run_learning_curve(base, values, root, targets, device, lambda line: typer.echo(line, err=True))
     except _trainer_errors() as exc:
