@@ -31,13 +31,13 @@ def rotate_xy(vectors: torch.Tensor, angles: torch.Tensor) -> torch.Tensor:
 
 def rotate_batch(batch, max_deg: float, generator: torch.Generator | None = None):
     """The batch with every graph's x (normalised ED coordinates) and y (normalised unloading
-    displacement) rotated about z by one random angle per graph in ±max_deg degrees (x and y are
-    replaced by new tensors, so the collated batch may share storage with the dataset). max_deg ≤ 0:
-    the batch unchanged."""
+    displacement) rotated about z by one random angle per graph in ±max_deg degrees. x and y are
+    replaced by new tensors, never written in place (a collated batch may share storage with the
+    dataset's graphs). max_deg ≤ 0: the batch unchanged."""
     if max_deg <= 0:
         return batch
     angles = rotation_angles(batch.num_graphs, max_deg, generator).to(batch.x.device)
     per_node = angles[batch.batch]
-    batch.x = rotate_xy(batch.x, per_node)  # new tensors: the dataset's graphs are never written
+    batch.x = rotate_xy(batch.x, per_node)
     batch.y = rotate_xy(batch.y, per_node)
     return batch

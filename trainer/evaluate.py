@@ -64,7 +64,8 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     summary = {"dsc_1mm": agg["dsc_1mm"][0], "dsc_01mm": agg["dsc_01mm"][0], "hd_mm": agg["hd_mm"][0],
                "md_mm": agg["md_mm"][0], "sd_mm": agg["sd_mm"][0], "ms_per_case": single_ms, "cases": len(rows)}
     extras = {"nn_md_mm": agg["nn_md_mm"][0], "ms_per_case_batched": batched_ms, "batch_size": batch_size,
-              "split": split, "rotations": pred.rotations, "config": pred.cfg.config_name, "kind": pred.kind, "device": str(pred.device),
+              "split": split, "rotations": pred.rotations, "config": pred.cfg.config_name, "kind": pred.kind,
+              "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
     by_param = _by_parameter(rows)
     out_dir = _output_folder(Path(out_dir) if out_dir else run_dir / f"eval_{split}")
