@@ -166,7 +166,7 @@ class TrainConfig:
     sr: float = 1.0  # supervision ratio: fraction of training cases whose label is used
     train_fraction: float = 1.0  # fraction of the training shapes kept (learning curves; trainer.splits)
     labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
-    rotate_deg: float = 0.0  # augmentation: each training graph turned about the long axis by ±rotate_deg (trainer.augment)
+    rotate_deg: float = 0.0  # augmentation: training graphs turned about the long axis by ±deg (trainer.augment)
     seed: int = 0
     epochs: int = 500
     batch_size: int = 16

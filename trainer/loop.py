@@ -260,7 +260,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases{kept} "
                  f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
                  f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}"
-                 + (f"; training graphs turned about the long axis by up to ±{cfg.rotate_deg:g}°" if cfg.rotate_deg else ""))
+                 + (f"; training graphs turned about the long axis by up to ±{cfg.rotate_deg:g}°"
+                    if cfg.rotate_deg else ""))
         if isinstance(sampler, MixedBatchSampler):
             dist.log(f"batches of {sampler.n_labelled} labelled + {sampler.n_unlabelled} unlabelled cases "
                      f"({len(sampler)} per epoch and process)")
