@@ -467,8 +467,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         run_dir = run_dir.resolve()
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
                           train_fraction=train_fraction, labelled_share=labelled_share, seed=seed,
-                          rotate_deg=rotate_deg, epochs=epochs if epochs is not None else (5 if local else 500), batch_size=batch_size,
-                          lr=lr, patience=patience, bf16=bf16)
+                          rotate_deg=rotate_deg, epochs=epochs if epochs is not None else (5 if local else 500),
+                          batch_size=batch_size, lr=lr, patience=patience, bf16=bf16)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")
         if not run_dir.parent.exists():
