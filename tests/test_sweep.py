@@ -45,6 +45,15 @@ def _stats(location, shape=0):
     return r.status(shape), r.stats(shape)
 
 
+def test_local_ray_workers_are_not_niced(ray_cluster):
+    """Ray's default nice 15 let any other busy process starve the solves ~20× (README)."""
+    import ray
+
+    from orchestrator.sweep import WORKER_NICENESS
+
+    assert ray.get(ray.remote(num_cpus=1)(lambda: os.nice(0)).remote()) == WORKER_NICENESS == 0
+
+
 def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_path):
     loc = str(tmp_path / "f.zarr")
     sp = spec(pressure_mmhg=(8.0, 1e5, 12.0))  # 1e5 mmHg cannot be inflated
