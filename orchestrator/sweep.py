@@ -25,8 +25,8 @@ from .grid import SweepSpec
 TASK_MAX_RETRIES = 3  # worker process crash / node loss
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 FLUSH_INTERVAL_S = 2.0
-# Ray starts its workers at nice 15; the solves then got ~3 % of a core whenever anything else ran
-# (measured: inverse p50 0.42 s idle → 12.8 s beside two busy processes; 0.6 s in a plain process)
+# Ray starts its workers at nice 15; the solves then got a few per cent of a core whenever anything
+# else ran (measured: inverse p50 0.42 s idle → 12.8 s beside two busy processes, 0.65 s at nice 0)
 WORKER_NICENESS = 0
 
 

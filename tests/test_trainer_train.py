@@ -212,6 +212,8 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     run = tmp_path / "pca"
     fit(_cfg(store, config_name="pca", model=named_config("pca")), run)
     assert load_run(run)["kind"] == "pca"
+    with pytest.raises(TrainerError, match="PCA baseline takes no rotations"):
+        Predictor(load_run(run), rotations=4)
     r = evaluate_run(run, store, "test", plots=False)
     # the synthetic displacement is smooth and low-dimensional: the baseline should get close
     assert r["summary"]["md_mm"] < 0.5 and r["summary"]["cases"] > 0

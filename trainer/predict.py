@@ -40,6 +40,8 @@ class Predictor:
         if weights is None:
             raise TrainerError("checkpoint holds no model weights")
         if self.kind == "pca":
+            if self.rotations > 1:
+                raise TrainerError("--rotations averages a network; the PCA baseline takes no rotations")
             from .pca import PCABaseline
 
             self.pca = PCABaseline(weights)
@@ -163,8 +165,9 @@ def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: st
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
     with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element).
     asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
-    differ from the training store's draw a warning. rotations: test-time averaging (Predictor). Returns {"unloaded_nodes", "network_ms",
-    "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
+    differ from the training store's draw a warning. rotations: test-time averaging (Predictor).
+    Returns {"unloaded_nodes", "network_ms", "warnings", and for hybrid "inverse" (the InverseResult)
+    and "fallback"}."""
     if method not in ("gnn", "hybrid"):
         raise TrainerError(f"unknown network method {method!r}")
     pred = Predictor.from_run(Path(run_dir), device, rotations)
