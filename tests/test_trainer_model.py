@@ -68,12 +68,12 @@ def _permuted(g, perm):
     inv = torch.empty_like(perm)
     inv[perm] = torch.arange(len(perm))
     h = g.clone()
-    h.x, h.y, h.region = g.x[perm], g.y[perm], g.region[perm]
+    h.x, h.y, h.region, h.wall = g.x[perm], g.y[perm], g.region[perm], g.wall[perm]
     h.edge_index = inv[g.edge_index]
     return h
 
 
-@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5"])
+@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5", "A1ema-wall"])
 def test_permutation_equivariance(name, graphs):
     torch.manual_seed(1)
     model = build_model(small(named_config(name)), 0.1).eval()
@@ -83,7 +83,8 @@ def test_permutation_equivariance(name, graphs):
         a, ca = model(Batch.from_data_list([g]))
         b, cb = model(Batch.from_data_list([_permuted(g, perm)]))
     torch.testing.assert_close(b, a[perm], atol=1e-5, rtol=1e-4)
-    torch.testing.assert_close(cb, ca[perm], atol=1e-5, rtol=1e-4)
+    if ca is not None:
+        torch.testing.assert_close(cb, ca[perm], atol=1e-5, rtol=1e-4)
 
 
 @pytest.mark.parametrize("name", ["paper", "multitoken", "C6"])
@@ -95,6 +96,25 @@ def test_mesh_size_agnostic_batching(name, graphs):
         together, _ = model(Batch.from_data_list(graphs))
         alone = [model(Batch.from_data_list([g]))[0] for g in graphs]
     torch.testing.assert_close(together, torch.cat(alone), atol=1e-5, rtol=1e-4)
+
+
+def test_wall_coordinates_reach_the_encoder_only_when_configured(graphs):
+    """node_features="wall": (ζ, τ) are node input (changing τ changes the answer); the paper's
+    xyz input ignores them. ζ runs 0 (base) … 1 (apex), τ 0 (endocardium) … 1 (epicardium)."""
+    g = graphs[0]
+    assert g.wall.shape == (g.num_nodes, 2)
+    assert float(g.wall.min()) == 0.0 and float(g.wall.max()) == 1.0
+    moved = g.clone()
+    moved.wall = g.wall.clone()
+    moved.wall[:, 1] = 1.0 - moved.wall[:, 1]
+    for name, changes in (("A1ema-wall", True), ("A1ema", False)):
+        torch.manual_seed(3)
+        model = build_model(small(named_config(name)), 0.1).eval()
+        with torch.no_grad():
+            a = model(Batch.from_data_list([g]))[0]
+            b = model(Batch.from_data_list([moved]))[0]
+        assert (not torch.allclose(a, b, atol=1e-6)) == changes, name
+    assert build_model(named_config("A1ema-wall")).encoder.skips[0].in_features == 5
 
 
 def test_single_token_attention_is_value_projection():

@@ -18,6 +18,7 @@ from trainer.evaluate import evaluate_run
 from trainer.loop import fit
 from trainer.metrics import case_metrics, dsc, hausdorff, nn_mean_distance, nodewise_error
 from trainer.predict import Predictor
+from trainer.schedule import cosine_lr
 from trainer_fixtures import make_tiny_store
 
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
@@ -73,6 +74,20 @@ def test_resumed_run_equals_an_uninterrupted_one(store, tmp_path):
         for name, w in once[part].items():
             torch.testing.assert_close(twice[part][name], w, rtol=0, atol=0, msg=f"{part}.{name}")
     assert once["history"][-1]["train_loss"] == twice["history"][-1]["train_loss"]
+
+
+def test_cosine_schedule_sets_each_epochs_rate(store, tmp_path):
+    """--lr-schedule cosine: epoch e trains at cosine_lr(e, E, lr), from lr down towards 1 % of it
+    (run with the wall-coordinate model, which must train end to end too)."""
+    model = replace(SMALL, node_features="wall", cycle=False, ema_decay=0.9)
+    s = fit(_cfg(store, model=model, epochs=3, lr_schedule="cosine", lr=2e-3), tmp_path / "cos")
+    assert s["epoch"] == 3
+    rates = [float(r["lr"]) for r in _rows(tmp_path / "cos" / "metrics.csv")]
+    assert rates == pytest.approx([cosine_lr(e, 3, 2e-3) for e in range(3)], rel=1e-6)
+    assert rates[0] == pytest.approx(2e-3) and rates[0] > rates[1] > rates[2] > 2e-5
+    assert cosine_lr(99, 100, 1.0) == pytest.approx(0.01, abs=3e-4)
+    with pytest.raises(TrainerError, match="lr-schedule"):
+        _cfg(store, lr_schedule="step")
 
 
 def test_checkpoints_load_without_unpickling_objects(tmp_path):

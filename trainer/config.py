@@ -38,6 +38,11 @@ class ModelConfig:
     gat_kernel: how GAT layers sum over neighbours — sparse (one sparse-matrix product per layer,
             trainer.sparse_gat; the default) | pyg (torch_geometric's GATConv). Same mathematics and
             parameter names: a checkpoint loads with either
+    node_features: the encoder's node input — xyz (normalised coordinates: the paper) | wall
+            (xyz plus the wall coordinates ζ, base 0 … apex 1, and τ, endocardium 0 … epicardium 1,
+            trainer.data.wall_coordinates: where a node sits in the wall, which three message-passing
+            hops cannot tell from coordinates; they label material points, so the cycle's pass on the
+            predicted unloaded mesh reuses the ED values)
     kind: gnn | pca (the PCA displacement baseline; the other fields are ignored)
     """
 
@@ -58,6 +63,7 @@ class ModelConfig:
     ema_decay: float = 0.0
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
+    node_features: str = "xyz"
     kind: str = "gnn"
     gat_kernel: str = "sparse"
     pca_components: int = 16
@@ -68,7 +74,7 @@ class ModelConfig:
         choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                    "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
                    "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
-                   "cycle_grad": ("both", "unloading", "teacher")}
+                   "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
@@ -140,12 +146,14 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
                   ema_decay=0.99),
     # A1 (no cycle) with the same weight average, the fair baseline for R5
     "A1ema": replace(PAPER, cycle=False, ema_decay=0.99),
+    # A1ema with the wall coordinates (ζ, τ) as node input besides the coordinates
+    "A1ema-wall": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall"),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
                "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
                "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | R5 (R4, mean teacher) | "
-               "A1ema (A1, weight average) | pca")
+               "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | pca")
 
 
 def named_config(name: str) -> ModelConfig:
@@ -153,6 +161,9 @@ def named_config(name: str) -> ModelConfig:
     if key is None:
         raise TrainerError(f"unknown --config {name!r}; choose {', '.join(NAMED_CONFIGS)}")
     return NAMED_CONFIGS[key]
+
+
+LR_SCHEDULES = ("plateau", "cosine")
 
 
 @dataclass(frozen=True)
@@ -173,6 +184,7 @@ class TrainConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     patience: int = 50  # early stopping, epochs without a better validation loss
+    lr_schedule: str = "plateau"  # plateau (ReduceLROnPlateau: the paper) | cosine (trainer.schedule)
     lr_patience: int = 10  # ReduceLROnPlateau
     lr_factor: float = 0.5
     bf16: bool = False  # autocast on CUDA only
@@ -192,6 +204,8 @@ class TrainConfig:
             raise TrainerError(f"--labelled-share must be in [0, 1), got {self.labelled_share}")
         if self.seed < 0:
             raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise TrainerError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if not 0 <= self.rotate_deg <= 180:
             raise TrainerError(f"--rotate-deg must be in [0, 180], got {self.rotate_deg}")
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 import torch
@@ -119,6 +120,11 @@ class MeshFeatures:
     tau: np.ndarray
     tets: np.ndarray = field(repr=False, default=None)
 
+    @cached_property
+    def wall(self) -> torch.Tensor:
+        """[n, 2] float32: (ζ, τ) per node."""
+        return torch.from_numpy(np.stack([self.zeta, self.tau], axis=1).astype(np.float32))
+
 
 def mesh_features(mesh) -> MeshFeatures:
     """Features of a solver TetMesh (nodes in mm)."""
@@ -131,7 +137,8 @@ def mesh_features(mesh) -> MeshFeatures:
 def case_graph(feat: MeshFeatures, params, norm: Normalisation, unloaded_mm: np.ndarray | None = None,
                labelled: bool = True, key=(-1, -1)) -> Data:
     """One case as a graph: x = normalised ED coordinates [n,3]; y = normalised unloading
-    displacement (NaN when the label is withheld or unknown); params [1,4] in [0,1]."""
+    displacement (NaN when the label is withheld or unknown); params [1,4] in [0,1]; wall [n,2] =
+    the wall coordinates (ζ, τ), region [n] their base/mid/apex × endo/epi cell."""
     x = norm.coords(feat.ed_mm)
     if unloaded_mm is not None and labelled:
         y = (np.asarray(unloaded_mm, dtype=np.float64) - feat.ed_mm) / norm.disp_scale_mm
@@ -140,7 +147,8 @@ def case_graph(feat: MeshFeatures, params, norm: Normalisation, unloaded_mm: np.
     return Data(x=torch.from_numpy(x.astype(np.float32)), edge_index=feat.edge_index,
                 y=torch.from_numpy(y.astype(np.float32)),
                 params=torch.from_numpy(norm.params(params).astype(np.float32)).view(1, -1),
-                region=feat.region, labelled=torch.tensor([bool(labelled and unloaded_mm is not None)]),
+                region=feat.region, wall=feat.wall,
+                labelled=torch.tensor([bool(labelled and unloaded_mm is not None)]),
                 key=torch.tensor([[int(key[0]), int(key[1])]], dtype=torch.long))
 
 

@@ -22,6 +22,7 @@ from .data import DataBundle, check_fingerprint, training_data
 from .files import write_csv, write_json
 from .model import build_model, count_parameters, loss_terms
 from .sampling import MixedBatchSampler, labelled_per_batch
+from .schedule import cosine_lr
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_sup", "train_cycle", "val_loss", "val_md_mm", "lr", "epoch_s",
                   "graphs_per_s")
@@ -270,6 +271,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         if stopped:
             break
         t_ep = time.perf_counter()
+        if cfg.lr_schedule == "cosine":
+            for group in opt.param_groups:
+                group["lr"] = cosine_lr(epoch, cfg.epochs, cfg.lr)
         sampler.set_epoch(epoch)
         wrapped.train()
         sums = [0.0, 0.0, 0.0, 0.0]  # loss·graphs, sup·graphs, cycle·graphs, graphs
@@ -293,7 +297,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         train_loss = sums[0] / max(sums[3], 1)
         val_loss, val_md = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
         monitor = val_loss if math.isfinite(val_loss) else train_loss
-        sched.step(monitor)
+        if cfg.lr_schedule == "plateau":
+            sched.step(monitor)
         if monitor < best_val:
             best_val, best_epoch, bad_epochs = monitor, epoch + 1, 0
             best_model = cpu_state(evaluated)

@@ -13,6 +13,7 @@ from .data import N_REGIONS
 from .sparse_gat import AttentionGraph, SparseGATConv
 
 N_PARAMS = 4
+N_WALL = 2  # wall coordinates ζ, τ
 
 
 def _gat(in_dim: int, hidden: int, heads: int, kernel: str, concat: bool = True) -> nn.Module:
@@ -196,7 +197,7 @@ class GATDecoder(nn.Module):
 class HeartUnloadNet(nn.Module):
     r"""ED mesh + parameters → unloading displacement, with a cycle back to ED.
 
-    encode(x, p): h = MeshEncoder(x) → h ← CrossAttn(h, Pool(h)) → h ← Fuse(h, ParamEncoder(p))
+    encode(x, p): h = MeshEncoder(x [‖ ζ, τ]) → h ← CrossAttn(h, Pool(h)) → h ← Fuse(h, ParamEncoder(p))
     d_unl = Dec_unl(encode(x̂_ED, p))                         (normalised X − x_ED)
     d_ed  = Dec_ed(encode(x̂_ED + ρ d_unl, p))                (normalised x_ED − X̂; ρ = disp/coord scale)
     loss  = MSE(d_unl, y)[labelled] + λ_cycle · MSE(d_unl + d_ed, 0)   (= reconstructed ED − ED)
@@ -211,7 +212,8 @@ class HeartUnloadNet(nn.Module):
         self.cfg = cfg
         W = cfg.width
         broadcast = cfg.fusion == "broadcast"
-        self.encoder = MeshEncoder(3 + (N_PARAMS if broadcast else 0), cfg.conv, cfg.hidden, cfg.heads, cfg.layers,
+        n_in = 3 + (N_WALL if cfg.node_features == "wall" else 0) + (N_PARAMS if broadcast else 0)
+        self.encoder = MeshEncoder(n_in, cfg.conv, cfg.hidden, cfg.heads, cfg.layers,
                                    cfg.dropout, cfg.gat_kernel)
         regional = cfg.tokens == "regional"
         self.pool = None if cfg.pooling == "none" else MeshPooling(cfg.pooling, regional)
@@ -229,7 +231,11 @@ class HeartUnloadNet(nn.Module):
         self.dec_ed = make_dec() if cfg.cycle else None
         self.register_buffer("disp_to_coord", torch.tensor(float(disp_to_coord)))
 
-    def encode(self, x, edge_index, batch, params, region, num_graphs: int):
+    def encode(self, x, edge_index, batch, params, region, num_graphs: int, wall=None):
+        """Node features [N, W] of coordinates x [N, 3]; `wall` [N, 2] = (ζ, τ), used when
+        cfg.node_features == "wall"."""
+        if self.cfg.node_features == "wall":
+            x = torch.cat([x, wall.to(x.dtype)], dim=1)
         if self.param_encoder is None:  # A5: parameters broadcast to the nodes
             x = torch.cat([x, params[batch]], dim=1)
         h = self.encoder(x, edge_index)
@@ -256,12 +262,12 @@ class HeartUnloadNet(nn.Module):
         if batch is None:
             batch = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         B = int(data.num_graphs) if hasattr(data, "num_graphs") and data.num_graphs else 1
-        params, region = data.params, data.region
+        params, region, wall = data.params, data.region, getattr(data, "wall", None)
         if graph is None and self._uses_attention_graph:
             graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
         if _reconstruct_from is not None:
-            return self._run(self.dec_ed, _reconstruct_from, ei, graph, batch, params, region, B)
-        d_unl = self._run(self.dec_unloaded, x, ei, graph, batch, params, region, B)
+            return self._run(self.dec_ed, _reconstruct_from, ei, graph, batch, params, region, B, wall)
+        d_unl = self._run(self.dec_unloaded, x, ei, graph, batch, params, region, B, wall)
         d_ed = d_rev = None
         if cycle:
             x_unl = x + self.disp_to_coord * d_unl
@@ -270,7 +276,7 @@ class HeartUnloadNet(nn.Module):
                     {name: p.detach() for name, p in self.named_parameters()}
                 d_ed = torch.func.functional_call(self, frozen, (data,), {"graph": graph, "_reconstruct_from": x_unl})
             else:
-                d_ed = self._run(self.dec_ed, x_unl, ei, graph, batch, params, region, B)
+                d_ed = self._run(self.dec_ed, x_unl, ei, graph, batch, params, region, B, wall)
         if reverse and cycle and self.cfg.reverse_weight > 0:
             d_rev = self._reverse_on_labelled(data, batch, B, graph)
         return (d_unl, d_ed, d_rev) if reverse else (d_unl, d_ed)
@@ -279,10 +285,10 @@ class HeartUnloadNet(nn.Module):
     def _uses_attention_graph(self) -> bool:
         return self.cfg.gat_kernel == "sparse" and "gat" in (self.cfg.conv, self.cfg.decoder)
 
-    def _run(self, decoder, x_in, ei, graph, batch, params, region, B: int):
+    def _run(self, decoder, x_in, ei, graph, batch, params, region, B: int, wall=None):
         enc_edges = graph if graph is not None and self.cfg.conv == "gat" else ei
         dec_edges = graph if graph is not None and self.cfg.decoder == "gat" else ei
-        return decoder(self.encode(x_in, enc_edges, batch, params, region, B), dec_edges)
+        return decoder(self.encode(x_in, enc_edges, batch, params, region, B, wall), dec_edges)
 
     def _reverse_on_labelled(self, data, batch, B: int, graph: AttentionGraph | None):
         """Dec_ed(encode(x̂_ED + ρ y)) on the labelled graphs' sub-batch (the loss ignores the others)."""
@@ -293,6 +299,7 @@ class HeartUnloadNet(nn.Module):
             return touch.expand(0, 3)
         node = lab[batch]
         x_true = data.x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(data.x.dtype)
+        wall = getattr(data, "wall", None)
         if n_lab == B:
             sub_ei, sub_batch, params, region = data.edge_index, batch, data.params, data.region
         else:
@@ -301,8 +308,9 @@ class HeartUnloadNet(nn.Module):
             sub_ei = new_id[data.edge_index[:, e]]
             sub_batch = (torch.cumsum(lab.to(torch.long), 0) - 1)[batch[node]]
             params, region, x_true = data.params[lab], data.region[node], x_true[node]
+            wall = None if wall is None else wall[node]
             graph = AttentionGraph.from_edge_index(sub_ei, x_true.shape[0]) if self._uses_attention_graph else None
-        return self._run(self.dec_ed, x_true, sub_ei, graph, sub_batch, params, region, n_lab)
+        return self._run(self.dec_ed, x_true, sub_ei, graph, sub_batch, params, region, n_lab, wall)
 
 
 def loss_terms(d_unl, d_ed, data, lambda_cycle: float, d_rev=None, reverse_weight: float = 0.0) -> dict:
