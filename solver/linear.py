@@ -95,8 +95,23 @@ class SparseSolver:
         self._lu = None
 
     def free(self) -> None:
+        """Release MKL's memory for this solver (PARDISO phase −1). MKL keeps a factorisation's
+        memory until told to, not until the Python handle is collected: without this a Ray worker
+        grew by ~6 MB per training pair (16 GB after ~2,600 pairs, then killed for memory)."""
         if self._pardiso is not None:
             self._pardiso.free_memory(everything=True)
             self._pardiso = None
         self._pattern_key = None
         self.forget()
+
+    def __enter__(self) -> "SparseSolver":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.free()
+
+    def __del__(self):  # a solver dropped without free(): release MKL's memory all the same
+        try:
+            self.free()
+        except Exception:  # interpreter shutdown: modules may already be gone
+            pass

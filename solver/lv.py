@@ -229,16 +229,16 @@ def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str
        stepping, which `solve` does; tests check that both land within 1e-3 mm of x_ED).
     Raises SolveError on failure."""
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
-    linsolve = SparseSolver()
     t0 = time.perf_counter()
     guess_s = 0.0
-    if initial_unloaded is None and fid.coarse_guess:
-        initial_unloaded = inverse_solve(ed_mesh, params, fid.coarse_guess, base, tol_mm=1e-2,
-                                         fibres=fibres).unloaded_nodes
-        guess_s = time.perf_counter() - t0
-    inv = inverse_solve(ed_mesh, params, fid, base, initial_unloaded, linsolve=linsolve, fibres=fibres)
-    fwd = forward_solve(ed_mesh.with_nodes(inv.unloaded_nodes), params, fid, base, linsolve=linsolve,
-                        initial_state=None if forward_from_scratch else inv.state, fibres=fibres)
+    with SparseSolver() as linsolve:
+        if initial_unloaded is None and fid.coarse_guess:
+            initial_unloaded = inverse_solve(ed_mesh, params, fid.coarse_guess, base, tol_mm=1e-2,
+                                             fibres=fibres).unloaded_nodes
+            guess_s = time.perf_counter() - t0
+        inv = inverse_solve(ed_mesh, params, fid, base, initial_unloaded, linsolve=linsolve, fibres=fibres)
+        fwd = forward_solve(ed_mesh.with_nodes(inv.unloaded_nodes), params, fid, base, linsolve=linsolve,
+                            initial_state=None if forward_from_scratch else inv.state, fibres=fibres)
     if fwd.stats.min_jacobian <= 0 or not np.all(np.isfinite(fwd.loaded_nodes)):
         raise SolveError("forward solve of the unloaded geometry produced an invalid state")
     roundtrip = float(np.linalg.norm(fwd.loaded_nodes - ed_mesh.nodes, axis=1).max())

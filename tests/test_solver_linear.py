@@ -1,0 +1,49 @@
+"""The sparse direct solver releases MKL PARDISO's memory: a generation worker solves thousands
+of pairs in one process, and each dropped factorisation used to stay allocated (~6 MB per pair)."""
+from __future__ import annotations
+
+import gc
+import os
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from solver.linear import SparseSolver, available_backends
+
+
+def _anonymous_rss_mb() -> float:
+    with open(f"/proc/{os.getpid()}/status") as f:
+        for line in f:
+            if line.startswith("RssAnon"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError("no RssAnon")
+
+
+def _laplacian_3d(n: int) -> sp.csr_matrix:
+    t = sp.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(n, n))
+    i = sp.identity(n)
+    return (sp.kron(sp.kron(t, i), i) + sp.kron(sp.kron(i, t), i) + sp.kron(sp.kron(i, i), t)).tocsr()
+
+
+@pytest.mark.skipif("pardiso" not in available_backends() or not os.path.exists("/proc/self/status"),
+                    reason="needs pypardiso and Linux /proc")
+@pytest.mark.parametrize("release", ["dropped", "context"])
+def test_pardiso_memory_is_released(release):
+    """Twelve solvers, each factorising an 8,000-unknown Laplacian (~14 MB of MKL memory) and then
+    dropped (or closed by `with`): the process must not grow by their factorisations."""
+    A = _laplacian_3d(20)
+    b = np.ones(A.shape[0])
+    sizes = []
+    for _ in range(12):
+        if release == "context":
+            with SparseSolver("pardiso") as s:
+                x = s.solve(A, b)
+        else:
+            s = SparseSolver("pardiso")
+            x = s.solve(A, b)
+            del s
+        gc.collect()
+        sizes.append(_anonymous_rss_mb())
+    assert np.allclose(A @ x, b)
+    assert sizes[-1] - sizes[1] < 40, f"anonymous memory grew {sizes[-1] - sizes[1]:.0f} MB over 10 solvers"
