@@ -97,7 +97,7 @@ class SparseSolver:
     def free(self) -> None:
         """Release MKL's memory for this solver (PARDISO phase −1). MKL keeps a factorisation's
         memory until told to, not until the Python handle is collected: without this a Ray worker
-        grew by ~6 MB per training pair (16 GB after ~2,600 pairs, then killed for memory)."""
+        grew by ~6 MB per training pair (to 16 GB, then killed for memory)."""
         if self._pardiso is not None:
             self._pardiso.free_memory(everything=True)
             self._pardiso = None
