@@ -89,6 +89,8 @@ FibresOpt = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (ours)
 UnitsOpt = typer.Option(Units.mm, "--units", help="Length unit of the input mesh; the output uses it too.")
 RotateDegOpt = typer.Option(0.0, "--rotate-deg", help="Augment: turn each training graph about the long axis by a "
                                                       "random angle in ±DEG (exact new FE pairs; 0 = off).")
+ScalePctOpt = typer.Option(0.0, "--scale-pct", help="Augment: scale each training graph about its base by a random "
+                                                    "factor in 1 ± PCT/100 (exact new FE pairs; 0 = off).")
 LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve the rate after 10 epochs without a better "
                                                               "validation loss: the paper) | cosine (anneal to 1 % "
                                                               "of --lr over --epochs).")
@@ -434,6 +436,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                                     "validation and test unchanged)."),
           seed: int = typer.Option(0, "--seed", help="Seed of split, SR subset, initialisation and shuffling."),
           rotate_deg: float = RotateDegOpt,
+          scale_pct: float = ScalePctOpt,
           lr_schedule: str = LrScheduleOpt,
           local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
           no_ray: bool = typer.Option(False, "--no-ray", help="Run the plain PyTorch loop in this process (no Ray)."),
@@ -471,7 +474,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         run_dir = run_dir.resolve()
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
                           train_fraction=train_fraction, labelled_share=labelled_share, seed=seed,
-                          rotate_deg=rotate_deg, epochs=epochs if epochs is not None else (5 if local else 500),
+                          rotate_deg=rotate_deg, scale_pct=scale_pct, epochs=epochs if epochs is not None else (5 if local else 500),
                           batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, patience=patience, bf16=bf16)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")
@@ -674,6 +677,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
                                                  "seed-paired comparisons."),
                        device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
                        rotate_deg: float = RotateDegOpt,
+                       scale_pct: float = ScalePctOpt,
                        lr_schedule: str = LrScheduleOpt,
                        as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
@@ -695,7 +699,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
         if root.exists() and not root.is_dir():
             raise TrainerError(f"--root {root} is a file")
         base = TrainConfig(store=store, model=PAPER, split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size,
-                           rotate_deg=rotate_deg, lr_schedule=lr_schedule)
+                           rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
         log = lambda line: typer.echo(line, err=True)  # noqa: E731
         if seed_list:
             result = run_ablation_seeds(base, names, seed_list, root, device, log)
@@ -778,6 +782,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
                              target_dsc: float = typer.Option(0.99, "--target-dsc", help="DSC@1mm target."),
                              device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
                              rotate_deg: float = RotateDegOpt,
+                             scale_pct: float = ScalePctOpt,
                              lr_schedule: str = LrScheduleOpt,
                              as_json: bool = typer.Option(False, "--json", help="Print the result as JSON.")):
     """Train one configuration on growing fractions of the training shapes, evaluate each on the same
@@ -799,7 +804,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
         if root.exists() and not root.is_dir():
             raise TrainerError(f"--root {root} is a file")
         base = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed, epochs=epochs,
-                           batch_size=batch_size, rotate_deg=rotate_deg, lr_schedule=lr_schedule)
+                           batch_size=batch_size, rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
         targets = {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc}
         result = run_learning_curve(base, values, root, targets, device, lambda line: typer.echo(line, err=True))
     except _trainer_errors() as exc:

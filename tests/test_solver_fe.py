@@ -190,3 +190,17 @@ def test_unloading_is_equivariant_under_rotation_about_the_long_axis(coarse_lv):
     shift = np.linalg.norm(unloaded - coarse_lv.nodes, axis=1).max()
     assert shift > 1.0  # a real unloading, mm
     assert np.linalg.norm(unloaded_turned - expected, axis=1).max() < 1e-6  # measured 2e-14
+
+
+def test_unloading_scales_with_the_shape_about_a_point_of_the_base_plane(coarse_lv):
+    """What trainer.augment's scaling relies on: scaling the ED mesh by s about a point of the base
+    plane scales its unloaded geometry the same way (F, and so the stress, unchanged; internal and
+    pressure work both gain s²; helix angles from relative wall depth; base plane kept)."""
+    params = CaseParameters(12.0, 100.0, 60.0, -60.0)
+    factor, pivot = 1.08, np.array([0.0, 0.0, coarse_lv.nodes[:, 2].max()])
+    scaled = coarse_lv.with_nodes((coarse_lv.nodes - pivot) * factor + pivot)
+    unloaded = inverse_solve(coarse_lv, params, "fast").unloaded_nodes
+    unloaded_scaled = inverse_solve(scaled, params, "fast").unloaded_nodes
+    expected = (unloaded - pivot) * factor + pivot
+    assert np.linalg.norm(unloaded - coarse_lv.nodes, axis=1).max() > 1.0  # a real unloading, mm
+    assert np.linalg.norm(unloaded_scaled - expected, axis=1).max() < 1e-6

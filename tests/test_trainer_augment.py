@@ -1,5 +1,6 @@
-"""Rotation about the long axis as augmentation (trainer.augment): one angle per graph, applied to
-coordinates and labels alike, within the asked range, never writing the dataset's graphs."""
+"""Rotation about the long axis and scaling about the base as augmentation (trainer.augment): one angle
+(or factor) per graph, applied to coordinates and labels alike, within the asked range, never writing
+the dataset's graphs."""
 import math
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 import torch
 from torch_geometric.data import Batch, Data
 
-from trainer.augment import rotate_batch, rotate_xy
+from trainer.augment import rotate_batch, rotate_xy, scale_batch
 from trainer.config import TrainConfig, TrainerError
 
 
@@ -60,3 +61,37 @@ def test_zero_degrees_is_the_identity_and_the_range_is_checked():
         TrainConfig(store="s.zarr", rotate_deg=181.0)
     with pytest.raises(TrainerError, match="--rotate-deg"):
         TrainConfig(store="s.zarr", rotate_deg=-1.0)
+
+
+def test_scaling_one_factor_per_graph_about_its_base_point():
+    graphs = [_graph(30, 0), _graph(45, 1), _graph(20, 2, labelled=False)]
+    batch = Batch.from_data_list(graphs)
+    x0, y0 = batch.x.clone(), batch.y.clone()
+    out = scale_batch(batch, 10.0, torch.Generator().manual_seed(3))
+    factors = []
+    for i in range(3):
+        nodes = (batch.batch == i).nonzero().squeeze(1)
+        pivot = torch.tensor([0.0, 0.0, float(x0[nodes, 2].max())])
+        ratio = (out.x[nodes] - pivot).norm(dim=1) / (x0[nodes] - pivot).norm(dim=1)
+        assert float(ratio.max() - ratio.min()) < 1e-5  # every node of a graph by the same factor
+        s = float(ratio[0])
+        torch.testing.assert_close(out.x[nodes], pivot + s * (x0[nodes] - pivot))
+        assert float(out.x[nodes, 2].max()) == pytest.approx(float(pivot[2]), abs=1e-6)  # the base stays on its plane
+        if i < 2:
+            torch.testing.assert_close(out.y[nodes], s * y0[nodes])  # the displacement scales with it
+        else:
+            assert torch.isnan(out.y[nodes]).all()
+        factors.append(s)
+    assert all(0.9 - 1e-6 <= s <= 1.1 + 1e-6 for s in factors)
+    assert len({round(s, 4) for s in factors}) == 3
+    torch.testing.assert_close(graphs[1].x, x0[30:75])  # the dataset's graphs are not written
+
+
+def test_zero_percent_is_the_identity_and_the_range_is_checked():
+    batch = Batch.from_data_list([_graph(10, 0)])
+    x = batch.x
+    assert scale_batch(batch, 0.0).x is x
+    with pytest.raises(TrainerError, match="--scale-pct"):
+        TrainConfig(store="s.zarr", scale_pct=31.0)
+    with pytest.raises(TrainerError, match="--scale-pct"):
+        TrainConfig(store="s.zarr", scale_pct=-1.0)

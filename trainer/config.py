@@ -148,12 +148,16 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     "A1ema": replace(PAPER, cycle=False, ema_decay=0.99),
     # A1ema with the wall coordinates (ζ, τ) as node input besides the coordinates
     "A1ema-wall": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall"),
+    # A1ema-wall without dropout: a displacement regression wants every feature, and the weight
+    # average already smooths the step-to-step noise
+    "A1ema-wall-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall", dropout=0.0),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
                "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
                "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | R5 (R4, mean teacher) | "
-               "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | pca")
+               "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | "
+               "A1ema-wall-d0 (A1ema-wall, no dropout) | pca")
 
 
 def named_config(name: str) -> ModelConfig:
@@ -178,6 +182,7 @@ class TrainConfig:
     train_fraction: float = 1.0  # fraction of the training shapes kept (learning curves; trainer.splits)
     labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
     rotate_deg: float = 0.0  # augmentation: training graphs turned about the long axis by ±deg (trainer.augment)
+    scale_pct: float = 0.0  # augmentation: training graphs scaled about their base by 1 ± pct/100 (trainer.augment)
     seed: int = 0
     epochs: int = 500
     batch_size: int = 16
@@ -208,6 +213,8 @@ class TrainConfig:
             raise TrainerError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if not 0 <= self.rotate_deg <= 180:
             raise TrainerError(f"--rotate-deg must be in [0, 180], got {self.rotate_deg}")
+        if not 0 <= self.scale_pct <= 30:
+            raise TrainerError(f"--scale-pct must be in [0, 30], got {self.scale_pct}")
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -225,4 +232,5 @@ class TrainConfig:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
         return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed,
-                "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg}
+                "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,
+                "scale_pct": self.scale_pct}

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from ._malloc import tune_allocator
-from .augment import rotate_batch
+from .augment import rotate_batch, scale_batch
 from .averaging import WeightAverage
 from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
@@ -262,7 +262,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                  f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
                  f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}"
                  + (f"; training graphs turned about the long axis by up to ±{cfg.rotate_deg:g}°"
-                    if cfg.rotate_deg else ""))
+                    if cfg.rotate_deg else "")
+                 + (f"; training graphs scaled about their base by up to ±{cfg.scale_pct:g} %"
+                    if cfg.scale_pct else ""))
         if isinstance(sampler, MixedBatchSampler):
             dist.log(f"batches of {sampler.n_labelled} labelled + {sampler.n_unlabelled} unlabelled cases "
                      f"({len(sampler)} per epoch and process)")
@@ -280,6 +282,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         aug_gen = torch.Generator().manual_seed((cfg.seed * 100003 + epoch) * 1009 + dist.rank)
         for batch in train_loader:
             batch = rotate_batch(_move(batch, dist.device), cfg.rotate_deg, aug_gen)
+            batch = scale_batch(batch, cfg.scale_pct, aug_gen)
             opt.zero_grad(set_to_none=True)
             with _autocast(cfg, dist.device):
                 d_unl, d_ed, d_rev = wrapped(batch, reverse=True, teacher=average.teacher() if uses_teacher else None)
