@@ -166,7 +166,9 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
                                                "gnn: the trained network; hybrid: network guess refined by inverse FE."),
            fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
            tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4)."),
-           run: Path = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid)."),
+           run: list[Path] = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid); "
+                                                              "repeat it to average several (an ensemble; the output "
+                                                              "gets their per-node spread)."),
            rotations: int = typer.Option(1, "--rotations", help="--method gnn|hybrid: average the network over K turns "
                                                                 "about the long axis (K× the time; best with --rotate-deg 180 runs)."),
            fibres: str = FibresOpt):
@@ -183,6 +185,7 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         _check_fibres(fibres)
         if rotations < 1 or (rotations > 1 and method is UnloadMethod.fe):
             raise ValueError(f"--rotations must be ≥ 1 and applies to --method gnn|hybrid, got {rotations}")
+        run = run or None
         if (run is None) != (method is UnloadMethod.fe):
             raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
         lv = read_mesh(mesh_path, units.value)
@@ -386,7 +389,7 @@ def _check_training_device(device: str) -> None:
             raise TrainerError("--device cuda: no CUDA device is available here")
 
 
-def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity: str, base: str, tol_mm, units: str,
+def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fidelity: str, base: str, tol_mm, units: str,
                          fibres: str, asked: dict, rotations: int = 1):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
     from solver.forward import SolveError
@@ -404,12 +407,19 @@ def _unload_with_network(lv, params, method: str, run: Path, out: Path, fidelity
         typer.echo(f"heartctl: warning: {w}", err=True)
     unloaded = result["unloaded_nodes"]
     shift = lv.nodes - unloaded
-    write_mesh(out, lv, unloaded, point_data={"displacement": shift}, units=units, length_fields=("displacement",))
+    point_data, lengths = {"displacement": shift}, ["displacement"]
+    if result["members"] > 1 and method == "gnn":  # hybrid: the FE answer, no network spread to show
+        point_data["ensemble_spread"] = result["spread_mm"]
+        lengths.append("ensemble_spread")
+    write_mesh(out, lv, unloaded, point_data=point_data, units=units, length_fields=tuple(lengths))
     d = np.linalg.norm(shift, axis=1)
+    spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
+              f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
+              if result["members"] > 1 else "")
     if method == "gnn":
         typer.echo(f"unloaded at {params.label()} by the network {result['run']} in {result['network_ms']:.1f} ms "
                    f"(first call with graph building {result['first_call_ms']:.0f} ms); "
-                   f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
+                   f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
         return
     inv = result["inverse"]
     typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms"
@@ -557,7 +567,9 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
 
 
 @app.command()
-def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartctl train --run-dir)."),
+def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (heartctl train --run-dir); repeat "
+                                                            "it to average several runs' networks (an ensemble: same "
+                                                            "store and split, K× the inference time)."),
              store: str = typer.Option(..., "--store", help="The store the run was trained on."),
              split: str = typer.Option("test", "--split", help="test | val | train (the run's split) | all (every done case of --store, which may be a store the run never saw)."),
              device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
@@ -577,13 +589,14 @@ def evaluate(run: Path = typer.Option(..., "--run", help="Run directory (heartct
 
             if not torch.cuda.is_available():
                 raise ValueError("--device cuda: no CUDA device is available here")
-        report = evaluate_run(run, store, split, device, out, plots, rotations=rotations)
+        report = evaluate_run(run[0], store, split, device, out, plots, rotations=rotations, members=run[1:])
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json.dumps({**report["summary"], "nn_md_mm": report["nn_md_mm"],
                                "ms_per_case_batched": report["ms_per_case_batched"], "split": split,
-                               "config": report["config"], "rotations": report["rotations"]}))
+                               "config": report["config"], "rotations": report["rotations"],
+                               "members": report["members"]}))
         return
     from rich.console import Console
     from rich.table import Table

@@ -252,3 +252,49 @@ def test_bench_learning_curve(trained, tmp_path):
     assert not (tmp_path / "bad").exists()
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "t", "--no-ray",
                          "--train-fraction", "0"), "train-fraction")
+
+
+def test_ensemble_is_the_mean_of_its_members_and_reports_their_spread(trained, tmp_path):
+    """`--run A --run B`: evaluate scores the mean of the two networks' answers; unload writes it with
+    the members' per-node spread; a member with another split (seed) is refused."""
+    from solver.parameters import CaseParameters
+    from trainer.predict import unload_with_network
+
+    other = trained["root"] / "run_a1"
+    r = run("train", "--store", trained["store"], "--run-dir", other, "--no-ray", "--epochs", 1, "--batch-size", 8,
+            "--device", "cpu", "--config", "A1")
+    assert r.exit_code == 0, r.output
+    m = lv_mesh(1)
+    params = CaseParameters(8.0, 100.0, 60.0, -60.0)
+    single = [unload_with_network(m, params, d)["unloaded_nodes"] for d in (trained["run"], other)]
+    both = unload_with_network(m, params, [trained["run"], other])
+    np.testing.assert_allclose(both["unloaded_nodes"], (single[0] + single[1]) / 2, atol=1e-5)
+    half_gap = np.linalg.norm(single[0] - single[1], axis=1) / 2  # two members: RMS spread = half their distance
+    np.testing.assert_allclose(both["spread_mm"], half_gap, atol=1e-5)
+    assert both["members"] == 2 and half_gap.max() > 0
+
+    ed, o = tmp_path / "ed.vtu", tmp_path / "o.vtu"
+    write_mesh(ed, m)
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", trained["run"],
+            "--run", other, "-o", o)
+    assert r.exit_code == 0, r.output
+    assert "2 networks disagree" in r.output
+    np.testing.assert_allclose(meshio.read(o).point_data["ensemble_spread"], half_gap, atol=1e-5)
+
+    r = run("evaluate", "--run", trained["run"], "--run", trained["run"], "--store", trained["store"], "--json",
+            "--no-plots")
+    assert r.exit_code == 0, r.output
+    twice = json.loads(r.output.strip().splitlines()[-1])
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--json", "--no-plots")
+    once = json.loads(r.output.strip().splitlines()[-1])
+    assert twice["members"] == 2 and once["members"] == 1
+    for key in ("md_mm", "hd_mm", "dsc_1mm", "sd_mm"):  # a run averaged with itself is that run
+        assert twice[key] == pytest.approx(once[key], rel=1e-6)
+    assert (trained["run"] / "eval_test_ensemble2" / "summary.json").is_file()
+
+    seed1 = trained["root"] / "run_seed1"
+    r = run("train", "--store", trained["store"], "--run-dir", seed1, "--no-ray", "--epochs", 1, "--batch-size", 8,
+            "--device", "cpu", "--seed", 1)
+    assert r.exit_code == 0, r.output
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--run", seed1, "--store", trained["store"], "--no-plots"),
+                     "another test split")

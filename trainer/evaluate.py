@@ -13,7 +13,7 @@ from .config import TrainerError
 from .data import check_fingerprint, read_store, store_fingerprint
 from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
-from .predict import Predictor
+from .predict import Ensemble, Predictor
 
 SPLITS = ("test", "val", "train", "all")
 
@@ -29,14 +29,28 @@ def _keys_for(state: dict, split: str) -> list | None:
     return keys
 
 
+def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations: int) -> Predictor:
+    """Another run of an ensemble, checked against the first run's store and split."""
+    state = load_run(run_dir)
+    if state["fingerprint"] != first["fingerprint"]:
+        raise TrainerError(f"ensemble run {run_dir} was trained on another store than the first run")
+    if keys is not None and _keys_for(state, split) != keys:
+        raise TrainerError(f"ensemble run {run_dir} has another {split} split than the first run "
+                           f"(another split or seed): its training cases would be scored")
+    return Predictor(state, device, rotations=rotations)
+
+
 def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_dir=None, plots: bool = True,
-                 batch_size: int = 32, timing_cases: int = 50, rotations: int = 1) -> dict:
+                 batch_size: int = 32, timing_cases: int = 50, rotations: int = 1, members=()) -> dict:
     """Predict every case of the split and compare with the FE unloaded geometry (mm); `rotations`:
-    test-time averaging over turns about the long axis (Predictor)."""
+    test-time averaging over turns about the long axis (Predictor); `members`: more run directories
+    whose networks are averaged with run_dir's (Ensemble). They must have been trained on the same
+    store with the same split, so that the split's cases are unseen by every member."""
     run_dir = Path(run_dir)
     state = load_run(run_dir)
     keys = _keys_for(state, split)
-    pred = Predictor(state, device, rotations=rotations)
+    pred = Ensemble([Predictor(state, device, rotations=rotations)]
+                    + [_member(Path(d), state, split, keys, device, rotations) for d in members])
     cases = read_store(store, keys)
     if keys is not None:
         check_fingerprint(state["fingerprint"], store_fingerprint(cases.attrs, cases.features), store)
@@ -64,11 +78,13 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     summary = {"dsc_1mm": agg["dsc_1mm"][0], "dsc_01mm": agg["dsc_01mm"][0], "hd_mm": agg["hd_mm"][0],
                "md_mm": agg["md_mm"][0], "sd_mm": agg["sd_mm"][0], "ms_per_case": single_ms, "cases": len(rows)}
     extras = {"nn_md_mm": agg["nn_md_mm"][0], "ms_per_case_batched": batched_ms, "batch_size": batch_size,
-              "split": split, "rotations": pred.rotations, "config": pred.cfg.config_name, "kind": pred.kind,
+              "split": split, "rotations": pred.rotations, "members": len(pred.members),
+              "config": " + ".join(m.cfg.config_name for m in pred.members), "kind": pred.kind,
               "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
     by_param = _by_parameter(rows)
-    out_dir = _output_folder(Path(out_dir) if out_dir else run_dir / f"eval_{split}")
+    default = f"eval_{split}" + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else "")
+    out_dir = _output_folder(Path(out_dir) if out_dir else run_dir / default)
     write_csv(out_dir / "cases.csv", rows)
     write_csv(out_dir / "by_parameter.csv", by_param)
     files = ["cases.csv", "by_parameter.csv"]

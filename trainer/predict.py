@@ -131,7 +131,56 @@ class Predictor:
         return (time.perf_counter() - t) / (len(items) * repeats) * 1e3
 
 
-def _warnings(pred: Predictor, feat: MeshFeatures, params) -> list:
+class Ensemble:
+    """Several trained runs as one predictor: the mean of their unloading displacements (mm), and
+    their spread. Members may differ in configuration, seed and normalisation (each builds its own
+    graphs); the first member speaks for the ensemble (its grid bounds, normalisation and
+    fingerprint). Inference costs the sum of the members'. Independently trained networks err
+    partly independently, so the mean is usually closer to the FE answer than any member, and
+    where the members disagree the answer is less certain (`spread_mm`)."""
+
+    def __init__(self, members: list):
+        if not members:
+            raise TrainerError("an ensemble needs at least one run")
+        self.members = list(members)
+        first = self.members[0]
+        self.state, self.cfg, self.norm, self.kind = first.state, first.cfg, first.norm, first.kind
+        self.device, self.rotations = first.device, first.rotations
+
+    @classmethod
+    def from_runs(cls, run_dirs, device: str = "cpu", rotations: int = 1) -> "Ensemble":
+        return cls([Predictor.from_run(Path(d), device, rotations) for d in run_dirs])
+
+    @property
+    def run_label(self) -> str:
+        return " + ".join(m.run_label for m in self.members)
+
+    def sync(self) -> None:
+        self.members[0].sync()
+
+    def predict_many_with_spread(self, items: list, batch_size: int = 32) -> tuple[list, list]:
+        """([mean displacement mm [n,3]], [member spread mm [n]: RMS distance of the members'
+        displacements from their mean, 0 for one member]) per item."""
+        each = [m.predict_many(items, batch_size) for m in self.members]
+        means, spreads = [], []
+        for per_case in zip(*each):
+            stack = np.stack(per_case)
+            mean = stack.mean(axis=0)
+            means.append(mean)
+            spreads.append(np.sqrt(((stack - mean) ** 2).sum(axis=2).mean(axis=0)))
+        return means, spreads
+
+    def predict_many(self, items: list, batch_size: int = 32) -> list:
+        return self.predict_many_with_spread(items, batch_size)[0]
+
+    def predict(self, feat: MeshFeatures, params, key=None) -> np.ndarray:
+        return self.predict_many([(feat, params, key)], 1)[0]
+
+    def time_ms_per_case(self, items: list, batch_size: int = 1, repeats: int = 1, warmup: int = 2) -> float:
+        return sum(m.time_ms_per_case(items, batch_size, repeats, warmup) for m in self.members)
+
+
+def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params) -> list:
     out = []
     names = ("pressure", "stiffness", "endo angle", "epi angle")
     for name, v, lo, hi in zip(names, params, pred.norm.param_lo, pred.norm.param_hi):
@@ -144,7 +193,7 @@ def _warnings(pred: Predictor, feat: MeshFeatures, params) -> list:
     return out
 
 
-def _model_warnings(pred: Predictor, asked: dict) -> list:
+def _model_warnings(pred: Predictor | Ensemble, asked: dict) -> list:
     """Warnings for model choices (`base`, `fibres`) the user asked for that the network was not
     trained with: `--method gnn` can only give the answer of the model its store was generated with."""
     trained = pred.state.get("fingerprint", {})
@@ -157,7 +206,7 @@ def _model_warnings(pred: Predictor, asked: dict) -> list:
     return out
 
 
-def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: str = "accurate",
+def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: str = "accurate",
                         base: str = "sliding", tol_mm: float | None = None, device: str = "cpu",
                         fibres: str = "laplace", asked: dict | None = None, rotations: int = 1) -> dict:
     """Unload an ED TetMesh (mm) at CaseParameters `params`.
@@ -166,21 +215,23 @@ def unload_with_network(mesh, params, run_dir, method: str = "gnn", fidelity: st
     with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element).
     asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
     differ from the training store's draw a warning. rotations: test-time averaging (Predictor).
-    Returns {"unloaded_nodes", "network_ms", "warnings", and for hybrid "inverse" (the InverseResult)
-    and "fallback"}."""
+    run_dirs: one run directory, or several for an ensemble (their mean; Ensemble).
+    Returns {"unloaded_nodes", "network_ms", "spread_mm" (per node, members' RMS disagreement, mm),
+    "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
     if method not in ("gnn", "hybrid"):
         raise TrainerError(f"unknown network method {method!r}")
-    pred = Predictor.from_run(Path(run_dir), device, rotations)
+    run_dirs = [run_dirs] if isinstance(run_dirs, (str, Path)) else list(run_dirs)
+    pred = Ensemble.from_runs(run_dirs, device, rotations)
     values = np.array([params.pressure_mmhg, params.stiffness_pa, params.helix_endo_deg, params.helix_epi_deg])
     feat = mesh_features(mesh)
     t = time.perf_counter()
-    disp = pred.predict(feat, values)
+    (disp,), (spread,) = pred.predict_many_with_spread([(feat, values, None)], 1)
     pred.sync()
     first_ms = (time.perf_counter() - t) * 1e3
     net_ms = pred.time_ms_per_case([(feat, values, None)], 1, repeats=5, warmup=3)  # the model alone, warm
     guess = mesh.nodes + disp
     out = {"network_ms": net_ms, "first_call_ms": first_ms, "warnings": _warnings(pred, feat, values),
-           "run": pred.run_label}
+           "run": pred.run_label, "members": len(pred.members), "spread_mm": spread}
     if method == "gnn":
         from solver.mesh import MeshError, check_geometry
 
