@@ -413,10 +413,10 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
         lengths.append("ensemble_spread")
     write_mesh(out, lv, unloaded, point_data=point_data, units=units, length_fields=tuple(lengths))
     d = np.linalg.norm(shift, axis=1)
-    spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
-              f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
-              if result["members"] > 1 else "")
     if method == "gnn":
+        spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
+                  f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
+                  if result["members"] > 1 else "")
         typer.echo(f"unloaded at {params.label()} by the network {result['run']} in {result['network_ms']:.1f} ms "
                    f"(first call with graph building {result['first_call_ms']:.0f} ms); "
                    f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")

@@ -19,6 +19,11 @@ def _graph(n: int, seed: int, labelled: bool = True) -> Data:
     return Data(x=x, y=y, edge_index=torch.zeros(2, 0, dtype=torch.long))
 
 
+def _nodes(batch, i: int) -> torch.Tensor:
+    """Indices of graph i's nodes in a batch."""
+    return (batch.batch == i).nonzero().squeeze(1)
+
+
 def _angle(before: torch.Tensor, after: torch.Tensor) -> np.ndarray:
     """Per row, the angle (rad) that turns before[:, :2] into after[:, :2]."""
     a = torch.atan2(after[:, 1], after[:, 0]) - torch.atan2(before[:, 1], before[:, 0])
@@ -38,7 +43,7 @@ def test_one_angle_per_graph_for_coordinates_and_labels_alike():
     out = rotate_batch(batch, 40.0, torch.Generator().manual_seed(3))
     angles = []
     for i in range(3):
-        nodes = (batch.batch == i).nonzero().squeeze(1)
+        nodes = _nodes(batch, i)
         a = _angle(x0[nodes], out.x[nodes])
         assert np.ptp(a) < 1e-5  # every node of a graph turns by the same angle
         angles.append(a[0])
@@ -70,7 +75,7 @@ def test_scaling_one_factor_per_graph_about_its_base_point():
     out = scale_batch(batch, 10.0, torch.Generator().manual_seed(3))
     factors = []
     for i in range(3):
-        nodes = (batch.batch == i).nonzero().squeeze(1)
+        nodes = _nodes(batch, i)
         pivot = torch.tensor([0.0, 0.0, float(x0[nodes, 2].max())])
         ratio = (out.x[nodes] - pivot).norm(dim=1) / (x0[nodes] - pivot).norm(dim=1)
         assert float(ratio.max() - ratio.min()) < 1e-5  # every node of a graph by the same factor
