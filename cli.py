@@ -885,7 +885,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
              dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cases, core-hours from a calibration solve) and exit."),
              retry_failed: bool = typer.Option(False, "--retry-failed", help="Also rerun cases recorded as failed."),
-             max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × CPUs)."),
+             max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × CPUs); a task is one pressure chain."),
+             warm_start: bool = typer.Option(True, "--warm-start/--no-warm-start", help="Start each inverse from the unloaded geometry of its chain's lower pressures (default) or from the ED mesh."),
              as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
     """Generate FE pairs (inverse + forward) over shapes × P × C × θendo × θepi into a Zarr store, on Ray.
     Rerunning on the same store resumes it."""
@@ -946,7 +947,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
 
     try:
         report = run_sweep(spec, store, max_in_flight=max_in_flight, retry_failed=retry_failed,
-                           progress=not as_json)
+                           progress=not as_json, warm_start=warm_start)
     except _store_errors() as exc:
         ray.shutdown()
         fail(str(exc))

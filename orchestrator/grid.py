@@ -219,3 +219,22 @@ def resolve_spec(explicit: dict, local: bool = False, stored_attrs: dict | None 
     values = asdict(base)
     values.update({k: v for k, v in explicit.items() if v is not None})
     return SweepSpec(**values)
+
+
+MAX_CHAIN = 6  # cases per pressure chain (one Ray task): the paper's six pressures
+
+
+def pressure_chains(case_params: np.ndarray, ks, max_len: int = MAX_CHAIN) -> list[list[int]]:
+    """Group case indices `ks` of one shape into pressure chains: cases with the same stiffness and
+    fibre angles, in increasing pressure, at most `max_len` per chain (a longer run is split). Each
+    chain is one task, whose solves warm-start each other (`orchestrator.tasks.run_chain`).
+
+    case_params: [K, 4] (P, C, θendo, θepi) of the store's cases."""
+    groups: dict[tuple, list[int]] = {}
+    for k in ks:
+        groups.setdefault(tuple(float(v) for v in case_params[int(k), 1:]), []).append(int(k))
+    chains = []
+    for members in groups.values():
+        members.sort(key=lambda k: (float(case_params[k, 0]), k))
+        chains += [members[i:i + max_len] for i in range(0, len(members), max_len)]
+    return chains

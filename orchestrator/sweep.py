@@ -1,6 +1,6 @@
 """The sweep driver: phase 1 meshes the shapes (Ray tasks) and writes them with every case array;
-phase 2 runs the pairs as Ray tasks (bounded in flight with `ray.wait`); tasks return arrays and
-the driver — the store's only writer — validates, writes and marks each case.
+phase 2 runs the pairs as Ray tasks, one pressure chain per task (bounded in flight with `ray.wait`);
+tasks return arrays and the driver — the store's only writer — validates, writes and marks each case.
 
 Failures: a lost worker or node is retried by Ray (`max_retries`); a solver failure is retried
 once inside the task with a more robust setting, then recorded as failed with its reason. The
@@ -20,7 +20,7 @@ import numpy as np
 
 from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, stats_row
 
-from .grid import SweepSpec
+from .grid import MAX_CHAIN, SweepSpec, pressure_chains
 
 TASK_MAX_RETRIES = 3  # worker process crash / node loss
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
@@ -130,8 +130,8 @@ def _remotes():
     from . import tasks
 
     mesh_remote = ray.remote(num_cpus=1, max_retries=TASK_MAX_RETRIES)(tasks.mesh_shape)
-    case_remote = ray.remote(num_cpus=1, max_retries=TASK_MAX_RETRIES, retry_exceptions=False)(tasks.run_case)
-    return mesh_remote, case_remote
+    chain_remote = ray.remote(num_cpus=1, max_retries=TASK_MAX_RETRIES, retry_exceptions=False)(tasks.run_chain)
+    return mesh_remote, chain_remote
 
 
 def _solver_digest() -> str:
@@ -168,9 +168,15 @@ def open_or_create(spec: SweepSpec, location: str) -> PairStore:
 
 
 def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = None, retry_failed: bool = False,
-              progress: bool = True, on_event=None, console=None) -> SweepReport:
+              progress: bool = True, on_event=None, console=None, warm_start: bool = True,
+              chain_length: int = MAX_CHAIN) -> SweepReport:
     """Run (or resume) the sweep into the store at `location`. Ray must be initialised
-    (see init_ray). `on_event(dict)` is called after every recorded case (tests use it)."""
+    (see init_ray). `on_event(dict)` is called after every recorded case (tests use it).
+
+    Each task solves one pressure chain (`grid.pressure_chains`: the cases of a shape that differ only
+    in pressure); with `warm_start` each inverse in it starts from the unloaded geometry extrapolated
+    from the chain's lower pressures; `chain_length` 1 makes every pair its own task.
+    `max_in_flight` counts tasks."""
     import ray
 
     if not ray.is_initialized():
@@ -185,9 +191,10 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
                          cpus=cpus)
     run = store.begin_run({"host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus,
                            "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": max_in_flight,
-                           "done_before": report.done_before, "failed_before": report.failed_before})
+                           "done_before": report.done_before, "failed_before": report.failed_before,
+                           "warm_start": warm_start})
     report.run = run
-    mesh_remote, case_remote = _remotes()
+    mesh_remote, chain_remote = _remotes()
     kept_failed = 0 if retry_failed else report.failed_before
     bar = _Progress(progress, spec.n_cases, report.done_before + kept_failed, kept_failed, console)
     try:
@@ -221,37 +228,39 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
                 status = store.status(s)
                 wanted = (status == PENDING) | ((status == FAILED) if retry_failed else False)
                 ks = np.flatnonzero(wanted)
-                if len(ks):
-                    todo.extend((s, int(k)) for k in ks)
-            bar.phase(f"solving {len(todo)} pairs on {cpus:g} CPUs")
+                todo.extend((s, chain) for chain in pressure_chains(store.params, ks, chain_length))
+            n_pairs = sum(len(chain) for _, chain in todo)
+            bar.phase(f"solving {n_pairs} pairs ({len(todo)} pressure chains) on {cpus:g} CPUs")
             inflight: dict = {}
             while todo or inflight:
                 while todo and len(inflight) < max_in_flight:
-                    s, k = todo.popleft()
+                    s, chain = todo.popleft()
                     if s not in mesh_refs:
                         mesh_refs[s] = ray.put(_tet_mesh(store, s))
-                    ref = case_remote.remote(mesh_refs[s], tuple(store.params[k]), spec.fidelity, spec.base,
-                                             fibres=spec.fibres)
-                    inflight[ref] = (s, k, time.time())
-                    report.submitted += 1
+                    ref = chain_remote.remote(mesh_refs[s], [tuple(store.params[k]) for k in chain], spec.fidelity,
+                                              spec.base, fibres=spec.fibres, warm_start=warm_start)
+                    inflight[ref] = (s, chain, time.time())
+                    report.submitted += len(chain)
                 ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
                 for ref in ready:
-                    s, k, submitted_at = inflight.pop(ref)
+                    s, chain, submitted_at = inflight.pop(ref)
                     try:
-                        result = ray.get(ref)
+                        results = ray.get(ref)
                     except Exception as exc:  # task error, or worker lost after max_retries
-                        result = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
-                    t_w = time.perf_counter()
-                    status = _record(store, s, k, result, submitted_at, run)
-                    report.driver_store_s += time.perf_counter() - t_w
-                    if status == DONE:
-                        report.done += 1
-                    else:
-                        report.failed += 1
-                    report.records.append((s, k, status))
-                    bar.advance(status == FAILED)
-                    if on_event is not None:
-                        on_event({"shape": s, "case": k, "status": status, "report": report})
+                        lost = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
+                        results = [lost] * len(chain)
+                    for k, result in zip(chain, results):
+                        t_w = time.perf_counter()
+                        status = _record(store, s, k, result, submitted_at, run)
+                        report.driver_store_s += time.perf_counter() - t_w
+                        if status == DONE:
+                            report.done += 1
+                        else:
+                            report.failed += 1
+                        report.records.append((s, k, status))
+                        bar.advance(status == FAILED)
+                        if on_event is not None:
+                            on_event({"shape": s, "case": k, "status": status, "report": report})
                 store.flush(FLUSH_INTERVAL_S)
             report.phase2_s = time.perf_counter() - t2
     finally:

@@ -53,12 +53,14 @@ def robust_fidelity(fidelity):
 
 
 def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True,
-             fibres: str = "laplace") -> dict:
+             fibres: str = "laplace", initial_unloaded: np.ndarray | None = None) -> dict:
     """One training pair: inverse then forward FE. A solver failure (SolveError, or an inverted
-    trial geometry) is retried once with `robust_fidelity`; if that fails too the result says so
-    (ok False, reason) — this function does not raise for a case that will not solve.
+    trial geometry) is retried once with `robust_fidelity`, from the ED mesh (never from
+    `initial_unloaded`); if that fails too the result says so (ok False, reason) — this function does
+    not raise for a case that will not solve.
 
-    mesh: solver TetMesh (the ED geometry); params: (P mmHg, C Pa, θendo °, θepi °) or CaseParameters.
+    mesh: solver TetMesh (the ED geometry); params: (P mmHg, C Pa, θendo °, θepi °) or CaseParameters;
+    initial_unloaded: a starting unloaded geometry [n, 3] mm for the first attempt (warm start).
     Returns ok, unloaded/loaded [n,3] (mm, float64) or None, stats (the pair's), reason, attempts,
     host, pid, started_at / finished_at (unix s), task_wall_s.
     """
@@ -74,12 +76,12 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     if not isinstance(params, CaseParameters):
         params = CaseParameters(*(float(v) for v in params))
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
-    settings = [fid, robust_fidelity(fid)] if retry else [fid]
+    settings = [(fid, initial_unloaded), (robust_fidelity(fid), None)] if retry else [(fid, initial_unloaded)]
     pair, reasons, attempts = None, [], 0
-    for setting in settings:
+    for setting, guess in settings:
         attempts += 1
         try:
-            pair = make_pair(mesh, params, setting, base, fibres=fibres)
+            pair = make_pair(mesh, params, setting, base, initial_unloaded=guess, fibres=fibres)
             break
         except (SolveError, MeshError) as exc:
             reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
@@ -95,6 +97,34 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
         out["loaded"] = np.asarray(pair.loaded_nodes, dtype=float)
         out["stats"] = {k: float(v) for k, v in pair.stats.items()}
     return out
+
+
+def run_chain(mesh, params_list, fidelity: str, base: str = "sliding", fibres: str = "laplace",
+              warm_start: bool = True) -> list[dict]:
+    """Cases of one shape that differ only in pressure, solved in the order given (the sweep gives
+    increasing pressure): with `warm_start`, each inverse starts from the unloaded geometry
+    extrapolated in pressure from the chain's cases solved so far (`solver.lv.unloaded_guess`), which
+    converges to the same tolerance in fewer iterations. A guess that folds an element is dropped (the
+    case then starts from its ED mesh). Returns one `run_case` result per case, in order."""
+    _single_thread()
+    from solver.lv import unloaded_guess
+    from solver.mesh import MeshError, check_geometry
+
+    solved, results = [], []
+    for params in params_list:
+        pressure = float(params[0] if not hasattr(params, "pressure_mmhg") else params.pressure_mmhg)
+        guess = unloaded_guess(solved, pressure) if warm_start else None
+        if guess is not None:
+            try:
+                check_geometry(guess, mesh.tets)
+            except MeshError:
+                guess = None
+        res = run_case(mesh, params, fidelity, base, fibres=fibres, initial_unloaded=guess)
+        res["warm_start"] = guess is not None
+        if res["ok"]:
+            solved.append((pressure, res["unloaded"]))
+        results.append(res)
+    return results
 
 
 def warm_up(seconds: float = 0.2) -> int:

@@ -100,7 +100,7 @@ def _descends_from(pid: int, ancestor: int) -> bool:
 
 def _busy_case_workers() -> list[int]:
     """PIDs of this test's Ray worker processes currently running a pair (process title
-    ray::run_case); the local Ray started by the fixture descends from this process, so other
+    ray::run_chain); the local Ray started by the fixture descends from this process, so other
     Ray jobs on the machine are left alone."""
     pids = []
     for d in Path("/proc").iterdir():
@@ -110,7 +110,7 @@ def _busy_case_workers() -> list[int]:
             cmd = (d / "cmdline").read_bytes()
         except OSError:
             continue
-        if cmd.startswith(b"ray::run_case") and _descends_from(int(d.name), os.getpid()):
+        if cmd.startswith(b"ray::run_chain") and _descends_from(int(d.name), os.getpid()):
             pids.append(int(d.name))
     return pids
 
