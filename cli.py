@@ -925,7 +925,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         from orchestrator.plan import cluster_cores, make_plan
 
         cores = num_cpus or (2 if local else cluster_cores())
-        plan = make_plan(spec, store, stored, cores=cores)
+        plan = make_plan(spec, store, stored, cores=cores, warm_start=warm_start)
         if as_json:
             typer.echo(json.dumps(plan, default=str))
             return
@@ -978,7 +978,9 @@ def _print_plan(plan: dict) -> None:
         p = cal["params"]
         status = "ok" if cal["ok"] else f"FAILED: {cal['reason']}"
         typer.echo(f"calibration: shape 0 ({cal['nodes']} nodes) meshed in {cal['mesh_s']:.1f} s; one pair at "
-                   f"P={p[0]:g} mmHg, C={p[1]:g} Pa, θ={p[2]:g}/{p[3]:g}° took {cal['pair_s']:.2f} s on 1 core ({status})")
+                   f"P={p[0]:g} mmHg, C={p[1]:g} Pa, θ={p[2]:g}/{p[3]:g}° took {cal['cold_pair_s']:.2f} s on 1 core ({status})"
+                   + (f", the next pressure warm-started from it {cal['warm_pair_s']:.2f} s: "
+                      f"{cal['pair_s']:.2f} s a pair over a pressure chain" if "warm_pair_s" in cal else ""))
         typer.echo(f"estimate: {plan['core_hours']:.2f} core-hours"
                    + (f", {plan['wall_hours_at_cores'] * 60:.1f} min wall on {plan['cores']} cores" if plan.get("cores") else "")
                    + f"; store ≈ {plan['store_bytes_estimate'] / 1e6:.0f} MB ({cal['case_bytes'] / 1e3:.1f} kB per case)")
@@ -1097,7 +1099,8 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
     from rich.table import Table
 
     table = Table(title=f"heartctl bench sweep — {result['cases']} fast pairs, {result['nodes']} nodes; "
-                        f"plain serial {result['plain_serial_s_per_case']:.2f} s/pair")
+                        f"plain serial {result['plain_serial_s_per_case']:.2f} s/pair cold, "
+                        f"{result['chained_serial_s_per_case']:.2f} s/pair in warm-started pressure chains")
     for col in ("CPUs", "pairs/s", "speedup", "efficiency", "solve s (p50)", "idle core s/task", "submit→start s",
                 "result→stored s", "no-op round trip s", "overhead % of solve (idle / stored / no-op)"):
         table.add_column(col, justify="right")
@@ -1109,8 +1112,8 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
                       f"{r['overhead_idle_core_pct']:.1f} / {r['overhead_result_to_stored_pct']:.2f} / "
                       f"{r['overhead_noop_pct']:.2f}")
     Console(width=200).print(table)
-    typer.echo("submit→start includes queueing (2 tasks in flight per CPU); idle core s/task = "
-               "(CPUs × wall − Σ solve) / pairs, everything that is not solving.")
+    typer.echo("Ray rows: one cold pair per task. submit→start includes queueing (2 tasks in flight per CPU); "
+               "idle core s/task = (CPUs × wall − Σ solve) / pairs, everything that is not solving.")
 
 
 # --- end of data generation (issue 3) ---

@@ -1,5 +1,6 @@
 """`heartctl bench sweep`: sweep throughput on 1, 2, … CPUs, parallel efficiency, and Ray's
-overhead per task against a `fast` pair's solve time."""
+overhead per task against a `fast` pair's solve time (one cold pair per task), and the serial time
+per pair with and without the pressure chains' warm start."""
 from __future__ import annotations
 
 import statistics
@@ -11,9 +12,9 @@ import numpy as np
 
 from storage.store import DONE, STAT_NAMES, PairReader
 
-from .grid import SweepSpec
+from .grid import SweepSpec, pressure_chains
 from .sweep import init_ray, run_sweep
-from .tasks import mesh_shape, run_case
+from .tasks import mesh_shape, run_case, run_chain
 
 
 def bench_spec(cases: int, nodes: int) -> SweepSpec:
@@ -43,7 +44,9 @@ def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> dict:
             ray.get(noop.remote())
             lat.append(time.time() - t)
         store = workdir / f"bench-{cpus}cpu.zarr"
-        report = run_sweep(spec, str(store), progress=False)
+        # one pair per task, cold: Ray's per-task overhead against one pair's solve (the chains'
+        # warm start is measured serially in run_sweep_benchmark)
+        report = run_sweep(spec, str(store), progress=False, warm_start=False, chain_length=1)
     finally:
         ray.shutdown()
     reader = PairReader(str(store))
@@ -74,6 +77,11 @@ def run_sweep_benchmark(cases: int = 8, nodes: int = 200, cpus=(1, 2)) -> dict:
     t = time.perf_counter()
     plain = [run_case(m, p, "fast")["task_wall_s"] for p in spec.case_params()]
     plain_wall = time.perf_counter() - t
+    params = spec.case_params()
+    t = time.perf_counter()
+    for chain in pressure_chains(params, range(len(params))):
+        run_chain(m, [params[k] for k in chain], "fast")
+    chained_wall = time.perf_counter() - t
     rows = []
     with tempfile.TemporaryDirectory(prefix="heartctl-bench-") as tmp:
         for k in cpus:
@@ -89,4 +97,5 @@ def run_sweep_benchmark(cases: int = 8, nodes: int = 200, cpus=(1, 2)) -> dict:
         r["overhead_noop_pct"] = 100 * r["noop_roundtrip_s_median"] / s
         r["overhead_idle_core_pct"] = 100 * r["idle_core_s_per_task"] / s
     return {"nodes": int(m.n_nodes), "cases": spec.n_cases, "plain_serial_s_per_case": plain_wall / len(plain),
+            "chained_serial_s_per_case": chained_wall / len(plain),
             "plain_solve_s_median": float(np.median(plain)), "rows": rows}

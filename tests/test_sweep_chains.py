@@ -1,0 +1,102 @@
+"""Pressure chains: the sweep's tasks group the cases of a shape that differ only in pressure, and
+each inverse starts from the unloaded geometry extrapolated from the chain's lower pressures. The
+warm start must change the cost, never the answer (beyond the inverse tolerance). No Ray here."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orchestrator.grid import SweepSpec, pressure_chains
+from orchestrator.tasks import mesh_shape, run_case, run_chain
+from solver.fidelity import get_fidelity
+from solver.lv import unloaded_guess
+
+CHAIN = [(6.0, 100.0, 60.0, -60.0), (10.0, 100.0, 60.0, -60.0), (14.0, 100.0, 60.0, -60.0)]
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return mesh_shape(0, 0, 200)["mesh"]
+
+
+@pytest.fixture(scope="module")
+def warm_and_cold(mesh):
+    warm = run_chain(mesh, CHAIN, "fast")
+    cold = [run_case(mesh, p, "fast") for p in CHAIN]
+    return warm, cold
+
+
+def test_guess_is_the_last_geometry_then_the_line_through_the_last_two():
+    x4, x8 = np.full((5, 3), 1.0), np.full((5, 3), 3.0)
+    assert unloaded_guess([], 8.0) is None
+    np.testing.assert_array_equal(unloaded_guess([(4.0, x4)], 8.0), x4)
+    np.testing.assert_allclose(unloaded_guess([(4.0, x4), (8.0, x8)], 12.0), 5.0)  # 3 + (3 − 1)·4/4
+    np.testing.assert_allclose(unloaded_guess([(4.0, x4), (8.0, x8)], 6.0), 2.0)
+    np.testing.assert_array_equal(unloaded_guess([(8.0, x4), (8.0, x8)], 12.0), x8)  # no slope from one P
+
+
+def test_chains_share_stiffness_and_angles_rise_in_pressure_and_cover_every_case_once():
+    spec = SweepSpec(shapes=1, pressure_mmhg=(14.0, 4.0, 8.0), stiffness_pa=(50.0, 300.0), helix_endo_deg=(60.0, 70.0),
+                     helix_epi_deg=(-60.0,), fidelity="fast", nodes=200)
+    params = spec.case_params()
+    ks = [k for k in range(spec.cases_per_shape) if k != 5]  # one case already done
+    chains = pressure_chains(params, ks)
+    assert sorted(k for c in chains for k in c) == ks
+    assert len(chains) == 4  # 2 C × 2 θendo
+    for chain in chains:
+        assert len({tuple(params[k, 1:]) for k in chain}) == 1
+        assert np.all(np.diff(params[chain, 0]) > 0)
+    short = pressure_chains(params, ks, max_len=2)
+    assert max(len(c) for c in short) == 2 and sorted(k for c in short for k in c) == ks
+    assert pressure_chains(params, []) == []
+
+
+def test_warm_started_chain_gives_the_cold_pairs_in_fewer_iterations(warm_and_cold):
+    warm, cold = warm_and_cold
+    tol = get_fidelity("fast").inverse_tol_mm
+    assert [r["ok"] for r in warm] == [True] * 3 and [r["ok"] for r in cold] == [True] * 3
+    assert [r["warm_start"] for r in warm] == [False, True, True]
+    assert [r["attempts"] for r in warm] == [1, 1, 1]
+    np.testing.assert_array_equal(warm[0]["unloaded"], cold[0]["unloaded"])  # the first case starts cold
+    for w, c in zip(warm[1:], cold[1:]):
+        # both inverses stop within tol of x_ED, so their unloaded geometries differ by about tol
+        assert np.linalg.norm(w["unloaded"] - c["unloaded"], axis=1).max() < 5 * tol
+        assert np.linalg.norm(w["loaded"] - c["loaded"], axis=1).max() < 5 * tol
+        assert w["stats"]["roundtrip_error_mm"] < 10 * tol
+    it = lambda rs: sum(r["stats"]["inverse_newton_iterations"] for r in rs[1:])  # noqa: E731
+    assert it(warm) < 0.6 * it(cold), (it(warm), it(cold))
+
+
+def test_chain_without_warm_start_is_the_cold_solve(mesh, warm_and_cold):
+    _, cold = warm_and_cold
+    plain = run_chain(mesh, CHAIN[:2], "fast", warm_start=False)
+    assert [r["warm_start"] for r in plain] == [False, False]
+    for p, c in zip(plain, cold):
+        np.testing.assert_array_equal(p["unloaded"], c["unloaded"])
+
+
+def test_a_failed_case_does_not_feed_the_next_guess_and_a_folded_guess_is_dropped(mesh, monkeypatch):
+    import solver.lv
+
+    chain = [(8.0, 100.0, 60.0, -60.0), (1e5, 100.0, 60.0, -60.0), (12.0, 100.0, 60.0, -60.0)]
+    seen = []
+    real = solver.lv.unloaded_guess
+
+    def spy(solved, pressure):
+        seen.append([p for p, _ in solved])
+        return real(solved, pressure)
+
+    monkeypatch.setattr(solver.lv, "unloaded_guess", spy)
+    res = run_chain(mesh, chain, "fast")
+    assert [r["ok"] for r in res] == [True, False, True]
+    assert seen == [[], [8.0], [8.0]]  # the failed 1e5 mmHg case is not extrapolated from
+
+    def folding(solved, pressure):
+        x = mesh.nodes.copy()
+        x[mesh.tets[0, 0]] = x[mesh.tets[0, 1:]].mean(axis=0) * 3 - 2 * x[mesh.tets[0, 0]]  # flip a corner through
+        return x if solved else None
+
+    monkeypatch.setattr(solver.lv, "unloaded_guess", folding)
+    res = run_chain(mesh, chain[::2], "fast")
+    assert [r["ok"] for r in res] == [True, True] and [r["warm_start"] for r in res] == [False, False]
+    assert res[1]["attempts"] == 1
