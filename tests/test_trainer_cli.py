@@ -7,10 +7,12 @@ import json
 import meshio
 import numpy as np
 import pytest
+import torch
 from typer.testing import CliRunner
 
 from cli import app
 from storage.meshfiles import write_mesh
+from trainer.checkpoint import load_run
 from trainer_fixtures import lv_mesh, make_tiny_store
 
 runner = CliRunner()
@@ -143,6 +145,7 @@ def test_mismatched_store(trained):
     (("--no-ray", "--sr", "0"), ("--sr",)),
     (("--no-ray", "--epochs", "0"), ("--epochs",)),
     (("--no-ray", "--rotate-deg", "200"), ("--rotate-deg", "[0, 180]")),
+    (("--no-ray", "--split-seed", "-1"), ("--split-seed",)),
     (("--gpus", "1"), ("--gpus",)),
     (("--local", "--no-ray"), ("--no-ray",)),
 ])
@@ -298,3 +301,16 @@ def test_ensemble_is_the_mean_of_its_members_and_reports_their_spread(trained, t
     assert r.exit_code == 0, r.output
     assert_bad_input(run("evaluate", "--run", trained["run"], "--run", seed1, "--store", trained["store"], "--no-plots"),
                      "another test split")
+    # --split-seed 0 keeps seed 0's split with seed 1's initialisation: a seed ensemble
+    seed1_split0 = trained["root"] / "run_seed1_split0"
+    r = run("train", "--store", trained["store"], "--run-dir", seed1_split0, "--no-ray", "--epochs", 1, "--batch-size", 8,
+            "--device", "cpu", "--seed", 1, "--split-seed", 0)
+    assert r.exit_code == 0, r.output
+    states = [load_run(d) for d in (trained["run"], seed1_split0)]
+    assert states[0]["split"] == states[1]["split"]
+    assert any(not torch.equal(a, states[1]["model"][k]) for k, a in states[0]["model"].items())  # other weights
+    r = run("evaluate", "--run", trained["run"], "--run", seed1_split0, "--store", trained["store"], "--json", "--no-plots")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.output.strip().splitlines()[-1])["members"] == 2
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", seed1_split0, "--no-ray", "--epochs", 2,
+                         "--device", "cpu", "--seed", 1), "split_seed")  # resuming needs the same split seed

@@ -183,7 +183,8 @@ class TrainConfig:
     labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
     rotate_deg: float = 0.0  # augmentation: training graphs turned about the long axis by ±deg (trainer.augment)
     scale_pct: float = 0.0  # augmentation: training graphs scaled about their base by 1 ± pct/100 (trainer.augment)
-    seed: int = 0
+    seed: int = 0  # initialisation, shuffling, augmentation; and the data's subsets unless split_seed is set
+    split_seed: int | None = None  # split, SR subset and training-shape subset (None: seed)
     epochs: int = 500
     batch_size: int = 16
     lr: float = 1e-3
@@ -209,12 +210,20 @@ class TrainConfig:
             raise TrainerError(f"--labelled-share must be in [0, 1), got {self.labelled_share}")
         if self.seed < 0:
             raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
+        if self.split_seed is not None and self.split_seed < 0:
+            raise TrainerError(f"--split-seed must be ≥ 0, got {self.split_seed}")
         if self.lr_schedule not in LR_SCHEDULES:
             raise TrainerError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if not 0 <= self.rotate_deg <= 180:
             raise TrainerError(f"--rotate-deg must be in [0, 180], got {self.rotate_deg}")
         if not 0 <= self.scale_pct <= 30:
             raise TrainerError(f"--scale-pct must be in [0, 30], got {self.scale_pct}")
+
+    @property
+    def data_seed(self) -> int:
+        """The seed of the split, the SR subset and the training-shape subset: networks trained with
+        one data seed and several seeds share their test cases (a seed ensemble)."""
+        return self.seed if self.split_seed is None else self.split_seed
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -231,6 +240,6 @@ class TrainConfig:
     def identity(self) -> dict:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
-        return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed,
+        return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed, "split_seed": self.data_seed,
                 "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,
                 "scale_pct": self.scale_pct}

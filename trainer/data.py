@@ -285,4 +285,4 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
 
 def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:
     """build_training_data for a TrainConfig (store, split, seed, SR, training-shape fraction)."""
-    return build_training_data(cfg.store, cfg.split, cfg.seed, cfg.sr, cases, cfg.train_fraction)
+    return build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction)

@@ -36,7 +36,8 @@ def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations
         raise TrainerError(f"ensemble run {run_dir} was trained on another store than the first run")
     if keys is not None and _keys_for(state, split) != keys:
         raise TrainerError(f"ensemble run {run_dir} has another {split} split than the first run "
-                           f"(another split or seed): its training cases would be scored")
+                           f"(another --split or split seed; --split-seed fixes it across --seed values): "
+                           f"its training cases would be scored")
     return Predictor(state, device, rotations=rotations)
 
 

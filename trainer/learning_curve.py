@@ -63,8 +63,8 @@ def run_learning_curve(base: TrainConfig, fractions: list, root: Path, targets: 
     training pairs. `targets` = {"md_mm": 0.15, "hd_mm": 0.6, "dsc_1mm": 0.99}. Writes
     learning_curve.csv and learning_curve.json under root."""
     cases = read_store(base.store)  # once, for every fraction
-    train = make_split(cases.keys, cases.params, base.split, base.seed, cases.attrs)["train"]
-    if len({len(subsample_shapes(train, f, base.seed)) for f in fractions}) < 2:  # before any training
+    train = make_split(cases.keys, cases.params, base.split, base.data_seed, cases.attrs)["train"]
+    if len({len(subsample_shapes(train, f, base.data_seed)) for f in fractions}) < 2:  # before any training
         raise TrainerError("every fraction keeps the same training cases; the split has too few training shapes "
                            "for these fractions")
     root = Path(root)
