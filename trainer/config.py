@@ -43,6 +43,11 @@ class ModelConfig:
             trainer.data.wall_coordinates: where a node sits in the wall, which three message-passing
             hops cannot tell from coordinates; they label material points, so the cycle's pass on the
             predicted unloaded mesh reuses the ED values)
+    output_scale: how the decoders' output becomes a displacement — global (× one scale fitted on
+            the training displacements: the paper) | load (also × the case's expected displacement
+            size exp(load_features(p̂) · a), a fitted on the labelled training cases, trainer.data
+            fit_load_scale: the decoders predict a field of unit size for every loading, so a case at
+            4 mmHg and C = 300 Pa is not fitted to the noise level of one at 14 mmHg and 50 Pa)
     kind: gnn | pca (the PCA displacement baseline; the other fields are ignored)
     """
 
@@ -64,6 +69,7 @@ class ModelConfig:
     param_hidden: int = 128
     decoder_hidden: tuple = (256, 128)
     node_features: str = "xyz"
+    output_scale: str = "global"
     kind: str = "gnn"
     gat_kernel: str = "sparse"
     pca_components: int = 16
@@ -74,7 +80,8 @@ class ModelConfig:
         choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                    "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
                    "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
-                   "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall")}
+                   "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall"),
+                   "output_scale": ("global", "load")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
@@ -151,13 +158,17 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # A1ema-wall without dropout: a displacement regression wants every feature, and the weight
     # average already smooths the step-to-step noise
     "A1ema-wall-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall", dropout=0.0),
+    # A1ema-wall-d0 whose output is scaled by the case's expected displacement size (from P, C, θ)
+    "A1ema-wall-d0-load": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall", dropout=0.0,
+                                  output_scale="load"),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
                "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
                "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | R5 (R4, mean teacher) | "
                "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | "
-               "A1ema-wall-d0 (A1ema-wall, no dropout) | pca")
+               "A1ema-wall-d0 (A1ema-wall, no dropout) | "
+               "A1ema-wall-d0-load (A1ema-wall-d0, output scaled by the loading's displacement size) | pca")
 
 
 def named_config(name: str) -> ModelConfig:

@@ -22,17 +22,54 @@ TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 # --------------------------------------------------------------------------- normalisation
 
 
+def load_features(p_hat, box):
+    """[B, 8] regressors of a case's displacement size from its normalised parameters p̂ [B, 4]
+    (NumPy or torch; clipped to the grid box [0, 1]): 1, ln P, ln C, (ln P)², (ln C)², ln P · ln C,
+    θ̂endo, θ̂epi, with P (mmHg) and C (Pa) recovered from p̂ by box = (P_lo, C_lo, P_hi, C_hi)."""
+    if isinstance(p_hat, torch.Tensor):
+        p, stack, log = p_hat.clamp(0.0, 1.0), torch.stack, torch.log
+    else:
+        p, stack, log = np.clip(np.asarray(p_hat, dtype=np.float64), 0.0, 1.0), np.stack, np.log
+    lo_p, lo_c, hi_p, hi_c = (float(v) for v in box)
+    P = log(lo_p + p[:, 0] * (hi_p - lo_p) + 1e-9)
+    C = log(lo_c + p[:, 1] * (hi_c - lo_c) + 1e-9)
+    return stack([P * 0 + 1, P, C, P * P, C * C, P * C, p[:, 2], p[:, 3]], 1)
+
+
+N_LOAD_FEATURES = 8
+LOAD_RIDGE = 1e-6  # on the non-constant regressors of the displacement-size fit: only to keep it well posed
+
+
+def fit_load_scale(p_hat: np.ndarray, box, rms_mm: np.ndarray, disp_scale_mm: float) -> tuple:
+    """Coefficients a of log(rms / disp_scale) ≈ load_features(p̂, box) · a: the typical size of a case's
+    unloading displacement from its loading (pressure, stiffness; helix angles linearly), fitted by
+    ridge least squares on the labelled training cases' RMS displacement (mm)."""
+    A = load_features(p_hat, box)
+    b = np.log(np.maximum(np.asarray(rms_mm, dtype=np.float64), 1e-9) / disp_scale_mm)
+    reg = np.diag([0.0] + [LOAD_RIDGE] * (A.shape[1] - 1)) * len(b)
+    coef = np.linalg.solve(A.T @ A + reg + 1e-12 * np.eye(A.shape[1]), A.T @ b)
+    return tuple(float(v) for v in coef)
+
+
 @dataclass(frozen=True)
 class Normalisation:
     """x̂ = (x − centre) / scale for coordinates (mm); ŷ = (X − x) / disp_scale for the unloading
     displacement (mm); p̂ = (p − lo) / (hi − lo) per parameter, lo/hi the store grid's bounds (an axis
-    with one value maps to 0). Fitted on the training split only."""
+    with one value maps to 0); load_coef: log of a case's expected displacement size (in disp_scale
+    units) as load_features(p̂) · load_coef (fit_load_scale; () when not fitted). Fitted on the
+    training split only."""
 
     centre_mm: tuple
     scale_mm: float
     disp_scale_mm: float
     param_lo: tuple
     param_hi: tuple
+    load_coef: tuple = ()
+
+    @property
+    def load_box(self) -> tuple:
+        """(P_lo, C_lo, P_hi, C_hi): the grid's pressure (mmHg) and stiffness (Pa) bounds, for load_features."""
+        return (float(self.param_lo[0]), float(self.param_lo[1]), float(self.param_hi[0]), float(self.param_hi[1]))
 
     @property
     def disp_to_coord(self) -> float:
@@ -50,17 +87,18 @@ class Normalisation:
     def as_dict(self) -> dict:
         return {"centre_mm": [float(v) for v in self.centre_mm], "scale_mm": float(self.scale_mm),
                 "disp_scale_mm": float(self.disp_scale_mm), "param_lo": [float(v) for v in self.param_lo],
-                "param_hi": [float(v) for v in self.param_hi]}
+                "param_hi": [float(v) for v in self.param_hi], "load_coef": [float(v) for v in self.load_coef]}
 
     @classmethod
     def from_dict(cls, d: dict) -> "Normalisation":
         return cls(tuple(d["centre_mm"]), float(d["scale_mm"]), float(d["disp_scale_mm"]), tuple(d["param_lo"]),
-                   tuple(d["param_hi"]))
+                   tuple(d["param_hi"]), tuple(d.get("load_coef", ())))
 
     @classmethod
-    def fit(cls, ed_nodes: list, displacements: list, grid: dict) -> "Normalisation":
+    def fit(cls, ed_nodes: list, displacements: list, grid: dict, params: list | None = None) -> "Normalisation":
         """ed_nodes: the ED node arrays of the training cases; displacements: unloaded − ED of the
-        labelled training cases (mm); grid: the store's parameter axes."""
+        labelled training cases (mm); grid: the store's parameter axes; params: the labelled cases'
+        parameters [4] (in `displacements` order), to fit load_coef (None: not fitted)."""
         allx = np.concatenate([np.asarray(x, dtype=np.float64) for x in ed_nodes])
         centre = allx.mean(axis=0)
         scale = float(np.sqrt(((allx - centre) ** 2).sum(axis=1).mean()))
@@ -72,7 +110,12 @@ class Normalisation:
             disp_scale = 1.0
         lo = tuple(float(min(grid[a])) for a in PARAM_NAMES)
         hi = tuple(float(max(grid[a])) for a in PARAM_NAMES)
-        return cls(tuple(float(v) for v in centre), scale, disp_scale, lo, hi)
+        norm = cls(tuple(float(v) for v in centre), scale, disp_scale, lo, hi)
+        if params is None or not displacements:
+            return norm
+        rms = [float(np.sqrt(np.mean(np.asarray(u, dtype=np.float64) ** 2))) for u in displacements]
+        p_hat = np.stack([norm.params(p) for p in params])
+        return replace(norm, load_coef=fit_load_scale(p_hat, norm.load_box, rms, disp_scale))
 
 
 # --------------------------------------------------------------------------- mesh features
@@ -276,8 +319,9 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
     parts["train"] = subsample_shapes(parts["train"], train_fraction, seed)
     labelled = supervised_subset(parts["train"], sr, seed)
     train_ed = [cases.ed(k) for k in parts["train"]]
-    train_disp = [cases.displacement(k) for k in parts["train"] if k in labelled]
-    norm = Normalisation.fit(train_ed, train_disp, cases.attrs["grid"])
+    train_lab = [k for k in parts["train"] if k in labelled]
+    norm = Normalisation.fit(train_ed, [cases.displacement(k) for k in train_lab], cases.attrs["grid"],
+                             [cases.params[k] for k in train_lab])
     return DataBundle(build_graphs(cases, parts["train"], norm, labelled), build_graphs(cases, parts["val"], norm),
                       build_graphs(cases, parts["test"], norm), norm, parts, labelled,
                       store_fingerprint(cases.attrs, cases.features), cases)

@@ -220,7 +220,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     if cfg.model.kind == "pca":
         return _fit_pca(cfg, run_dir, bundle, dist, t0)
 
-    model = build_model(cfg.model, bundle.norm.disp_to_coord)
+    model = build_model(cfg.model, bundle.norm.disp_to_coord, bundle.norm.load_coef, bundle.norm.load_box)
     n_params = count_parameters(model)
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     sched = torch.optim.lr_scheduler.ReduceLROnPlateau(opt, mode="min", factor=cfg.lr_factor, patience=cfg.lr_patience)

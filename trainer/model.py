@@ -9,7 +9,7 @@ from torch_geometric.nn import GATConv, GATv2Conv, GCNConv, SAGEConv
 from torch_geometric.utils import scatter, to_dense_batch
 
 from .config import ModelConfig
-from .data import N_REGIONS
+from .data import N_LOAD_FEATURES, N_REGIONS, load_features
 from .sparse_gat import AttentionGraph, SparseGATConv
 
 N_PARAMS = 4
@@ -202,12 +202,15 @@ class HeartUnloadNet(nn.Module):
     d_ed  = Dec_ed(encode(x̂_ED + ρ d_unl, p))                (normalised x_ED − X̂; ρ = disp/coord scale)
     loss  = MSE(d_unl, y)[labelled] + λ_cycle · MSE(d_unl + d_ed, 0)   (= reconstructed ED − ED)
             [+ λ_rev · MSE(Dec_ed(encode(x̂_ED + ρ y, p)), −y)[labelled]  when reverse_weight λ_rev > 0]
+    With output_scale = "load" each decoder's output is multiplied by its graph's expected
+    displacement size s(p) = exp(load_features(p̂) · a) (trainer.data.fit_load_scale).
     With cycle_grad = "unloading" the d_ed pass runs on detached weights: the cycle term moves
     d_unl only (through the frozen pass's input), never Dec_ed or the encoder's second use; with
     "teacher" it runs on the weight average the training loop passes in (a mean teacher).
     """
 
-    def __init__(self, cfg: ModelConfig, disp_to_coord: float = 0.1):
+    def __init__(self, cfg: ModelConfig, disp_to_coord: float = 0.1, load_coef: tuple = (),
+                 load_box: tuple = (4.0, 50.0, 14.0, 300.0)):
         super().__init__()
         self.cfg = cfg
         W = cfg.width
@@ -230,6 +233,19 @@ class HeartUnloadNet(nn.Module):
         self.dec_unloaded = make_dec()
         self.dec_ed = make_dec() if cfg.cycle else None
         self.register_buffer("disp_to_coord", torch.tensor(float(disp_to_coord)))
+        if cfg.output_scale == "load":  # only then: checkpoints of the other configurations load as before
+            coef = torch.zeros(N_LOAD_FEATURES) if not load_coef else torch.tensor(load_coef, dtype=torch.float32)
+            if coef.shape != (N_LOAD_FEATURES,):
+                raise ValueError(f"load_coef must hold {N_LOAD_FEATURES} values, got {tuple(coef.shape)}")
+            self.register_buffer("load_coef", coef)
+            self.load_box = tuple(float(v) for v in load_box)  # from the Normalisation, as disp_to_coord
+
+    def output_scale(self, params: torch.Tensor) -> torch.Tensor | None:
+        """[B] per-graph factor on the decoders' output: exp(load_features(p̂, box) · a) with
+        output_scale="load", else None (the global displacement scale only)."""
+        if self.cfg.output_scale != "load":
+            return None
+        return torch.exp(load_features(params.float(), self.load_box) @ self.load_coef)
 
     def encode(self, x, edge_index, batch, params, region, num_graphs: int, wall=None):
         """Node features [N, W] of coordinates x [N, 3]; `wall` [N, 2] = (ζ, τ), used when
@@ -288,7 +304,9 @@ class HeartUnloadNet(nn.Module):
     def _run(self, decoder, x_in, ei, graph, batch, params, region, B: int, wall=None):
         enc_edges = graph if graph is not None and self.cfg.conv == "gat" else ei
         dec_edges = graph if graph is not None and self.cfg.decoder == "gat" else ei
-        return decoder(self.encode(x_in, enc_edges, batch, params, region, B, wall), dec_edges)
+        d = decoder(self.encode(x_in, enc_edges, batch, params, region, B, wall), dec_edges)
+        size = self.output_scale(params)
+        return d if size is None else d * size.to(d.dtype)[batch].unsqueeze(1)
 
     def _reverse_on_labelled(self, data, batch, B: int, graph: AttentionGraph | None):
         """Dec_ed(encode(x̂_ED + ρ y)) on the labelled graphs' sub-batch (the loss ignores the others)."""
@@ -339,10 +357,13 @@ def count_parameters(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-def build_model(cfg: ModelConfig, disp_to_coord: float = 0.1) -> HeartUnloadNet:
+def build_model(cfg: ModelConfig, disp_to_coord: float = 0.1, load_coef: tuple = (),
+                load_box: tuple = (4.0, 50.0, 14.0, 300.0)) -> HeartUnloadNet:
+    """The network of a configuration; disp_to_coord, load_coef and load_box from the run's
+    Normalisation (used by output_scale="load" only; load_coef () = a neutral factor of 1)."""
     if cfg.kind != "gnn":
         raise ValueError("build_model builds the graph network; the PCA baseline lives in trainer.pca")
-    return HeartUnloadNet(cfg, disp_to_coord)
+    return HeartUnloadNet(cfg, disp_to_coord, load_coef, load_box)
 
 
 __all__ = ["HeartUnloadNet", "MeshEncoder", "MeshPooling", "CrossAttention", "ParameterEncoder", "ConcatFusion",

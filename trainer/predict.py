@@ -49,7 +49,7 @@ class Predictor:
         elif self.kind == "gnn":
             from .model import build_model
 
-            self.model = build_model(self.cfg.model, self.norm.disp_to_coord)
+            self.model = build_model(self.cfg.model, self.norm.disp_to_coord, self.norm.load_coef, self.norm.load_box)
             try:
                 self.model.load_state_dict(weights)
             except (RuntimeError, KeyError) as exc:
