@@ -167,6 +167,23 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
                      f"(mismatch {history[-1]:.3g} mm)")
 
 
+def linear_response(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "fast",
+                    base: str = "sliding", fibres: str = "laplace") -> np.ndarray:
+    """Nodal displacement per unit cavity pressure, mm/Pa, of `mesh` as the stress-free state: one
+    linear solve with the tangent at zero strain (the small-load limit of `forward_solve`, with the
+    same supports, fibres and material; ∝ 1/C). Costs one assembly and one factorisation, a few per
+    cent of a forward solve. Raises SolveError when the tangent is singular."""
+    problem = lv_problem(mesh, params, fidelity, base, fibres=fibres)
+    z = problem.zeros()
+    R, K, _ = problem.assemble(z, 1.0)
+    with SparseSolver() as linsolve:
+        dz = linsolve.solve(K, -R)
+    if not np.all(np.isfinite(dz)):
+        raise SolveError("singular tangent at zero strain")
+    z[problem.free] += dz
+    return problem.split(z)[0][: mesh.n_nodes].copy()
+
+
 def unloaded_guess(solved: list[tuple[float, np.ndarray]], pressure_mmhg: float) -> np.ndarray | None:
     """A starting unloaded geometry (mm) for the inverse at `pressure_mmhg`, from solved unloaded
     geometries of the same ED mesh, stiffness and fibres at other pressures, `solved` = [(P mmHg,

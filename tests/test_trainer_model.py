@@ -29,7 +29,8 @@ def graphs():
         m = lv_mesh(s)
         f = mesh_features(m)
         norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
-        out.append(case_graph(f, [8.0, 150.0, 65.0, -65.0], norm, synthetic_unloaded(m.nodes, 8.0, 150.0)))
+        out.append(case_graph(f, [8.0, 150.0, 65.0, -65.0], norm, synthetic_unloaded(m.nodes, 8.0, 150.0),
+                              response=True))
     assert out[0].num_nodes != out[1].num_nodes
     return out
 
@@ -68,12 +69,12 @@ def _permuted(g, perm):
     inv = torch.empty_like(perm)
     inv[perm] = torch.arange(len(perm))
     h = g.clone()
-    h.x, h.y, h.region, h.wall = g.x[perm], g.y[perm], g.region[perm], g.wall[perm]
+    h.x, h.y, h.region, h.wall, h.response = g.x[perm], g.y[perm], g.region[perm], g.wall[perm], g.response[perm]
     h.edge_index = inv[g.edge_index]
     return h
 
 
-@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5", "A1ema-wall"])
+@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5", "A1ema-wall", "A1ema-resp-d0"])
 def test_permutation_equivariance(name, graphs):
     torch.manual_seed(1)
     model = build_model(small(named_config(name)), 0.1).eval()

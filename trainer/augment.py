@@ -49,6 +49,8 @@ def rotate_batch(batch, max_deg: float, generator: torch.Generator | None = None
     per_node = angles[batch.batch]
     batch.x = rotate_xy(batch.x, per_node)
     batch.y = rotate_xy(batch.y, per_node)
+    if getattr(batch, "response", None) is not None:  # the linear response turns with the mesh
+        batch.response = rotate_xy(batch.response, per_node)
     return batch
 
 
@@ -72,5 +74,5 @@ def scale_batch(batch, max_pct: float, generator: torch.Generator | None = None)
     centre = torch.zeros_like(batch.x)
     centre[:, 2] = top[batch.batch]
     batch.x = centre + per_node * (batch.x - centre)
-    batch.y = per_node * batch.y
+    batch.y = per_node * batch.y  # the linear response ũ (displacement / size) is unchanged
     return batch

@@ -74,7 +74,8 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
 
     def graph():
         p = [rng.choice(PAPER_GRID[a]) for a in PARAM_NAMES]
-        return case_graph(feat, p, norm, feat.ed_mm + rng.normal(0, 1, feat.ed_mm.shape), True)
+        return case_graph(feat, p, norm, feat.ed_mm + rng.normal(0, 1, feat.ed_mm.shape), True,
+                          response=cfg.uses_response)
 
     model = build_model(cfg, 0.1).to(dev)
     run = torch.compile(model, dynamic=True) if compile_model else model

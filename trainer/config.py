@@ -42,7 +42,10 @@ class ModelConfig:
             (xyz plus the wall coordinates ζ, base 0 … apex 1, and τ, endocardium 0 … epicardium 1,
             trainer.data.wall_coordinates: where a node sits in the wall, which three message-passing
             hops cannot tell from coordinates; they label material points, so the cycle's pass on the
-            predicted unloaded mesh reuses the ED values)
+            predicted unloaded mesh reuses the ED values) | wall-response (wall plus the mesh's
+            linear response ũ [3]: its displacement under pressure from one linear FE solve,
+            trainer.data.linear_response_feature — how the whole shape gives, which no few-hop
+            message passing can compute; ~0.2 s per mesh, once, on top of the network's time)
     output_scale: how the decoders' output becomes a displacement — global (× one scale fitted on
             the training displacements: the paper) | load (also × the case's expected displacement
             size exp(load_features(p̂) · a), a fitted on the labelled training cases, trainer.data
@@ -80,7 +83,7 @@ class ModelConfig:
         choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                    "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
                    "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
-                   "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall"),
+                   "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall", "wall-response"),
                    "output_scale": ("global", "load")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
@@ -104,6 +107,15 @@ class ModelConfig:
         if self.cycle_rampup_epochs <= 0:
             return self.lambda_cycle
         return self.lambda_cycle * min(1.0, (epoch + 1) / self.cycle_rampup_epochs)
+
+    @property
+    def uses_response(self) -> bool:
+        """Whether the graphs must carry the linear response (node_features wall-response)."""
+        return self.kind == "gnn" and self.node_features == "wall-response"
+
+    @property
+    def uses_wall(self) -> bool:
+        return self.node_features in ("wall", "wall-response")
 
     @property
     def width(self) -> int:
@@ -161,6 +173,8 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # A1ema-wall-d0 whose output is scaled by the case's expected displacement size (from P, C, θ)
     "A1ema-wall-d0-load": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall", dropout=0.0,
                                   output_scale="load"),
+    # A1ema-wall-d0 with the mesh's linear FE response as node input too
+    "A1ema-resp-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
@@ -168,7 +182,8 @@ CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no
                "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | R5 (R4, mean teacher) | "
                "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | "
                "A1ema-wall-d0 (A1ema-wall, no dropout) | "
-               "A1ema-wall-d0-load (A1ema-wall-d0, output scaled by the loading's displacement size) | pca")
+               "A1ema-wall-d0-load (A1ema-wall-d0, output scaled by the loading's displacement size) | "
+               "A1ema-resp-d0 (A1ema-wall-d0 plus the mesh's linear FE response as node input) | pca")
 
 
 def named_config(name: str) -> ModelConfig:

@@ -152,6 +152,31 @@ def node_regions(zeta: np.ndarray, tau: np.ndarray) -> np.ndarray:
     return third + 3 * (tau >= 0.5).astype(np.int64)
 
 
+RESPONSE_STIFFNESS_PA = 150.0  # the linear response's material: Guccione C (mid grid), helix ±65°
+RESPONSE_PRESSURE_PA = 4000.0  # ũ = u(this pressure) / R: of order 1 on the shape model's LVs
+
+
+def linear_response_feature(mesh) -> np.ndarray:
+    """[n, 3] the dimensionless linear response ũ = u_lin · RESPONSE_PRESSURE_PA / R of a TetMesh
+    taken as stress-free: u_lin the nodal displacement per Pa of one linear FE solve at zero strain
+    (solver.lv.linear_response; sliding base, Laplace fibres at ±65°, C = RESPONSE_STIFFNESS_PA),
+    R the RMS distance of the nodes from their centroid (mm). How this whole shape gives under
+    pressure, which a few message-passing hops cannot work out. ũ is unchanged when the mesh is
+    scaled and turns with it about z, as the unloading displacement does (trainer.augment).
+    Raises TrainerError when the solve fails."""
+    from solver.forward import SolveError
+    from solver.lv import linear_response
+    from solver.parameters import CaseParameters
+
+    nodes = np.asarray(mesh.nodes, dtype=np.float64)
+    radius = float(np.sqrt(((nodes - nodes.mean(axis=0)) ** 2).sum(axis=1).mean()))
+    try:
+        u = linear_response(mesh, CaseParameters(1.0, RESPONSE_STIFFNESS_PA, 65.0, -65.0), "fast")
+    except (SolveError, ValueError) as exc:
+        raise TrainerError(f"linear response of the mesh failed: {str(exc).splitlines()[0]}") from None
+    return u * RESPONSE_PRESSURE_PA / max(radius, 1e-12)
+
+
 @dataclass
 class MeshFeatures:
     """What one mesh topology contributes to its graphs (shared by all cases of a shape)."""
@@ -162,11 +187,21 @@ class MeshFeatures:
     zeta: np.ndarray
     tau: np.ndarray
     tets: np.ndarray = field(repr=False, default=None)
+    mesh: object = field(repr=False, default=None)  # the solver TetMesh (surfaces), for the linear response
 
     @cached_property
     def wall(self) -> torch.Tensor:
         """[n, 2] float32: (ζ, τ) per node."""
         return torch.from_numpy(np.stack([self.zeta, self.tau], axis=1).astype(np.float32))
+
+    @cached_property
+    def response(self) -> torch.Tensor:
+        """[n, 3] float32: the linear response ũ of this ED geometry (linear_response_feature),
+        computed on first use (~0.2 s for 350 nodes)."""
+        if self.mesh is None:
+            raise TrainerError("these mesh features carry no mesh to compute the linear response on")
+        mesh = self.mesh if np.array_equal(self.mesh.nodes, self.ed_mm) else self.mesh.with_nodes(self.ed_mm)
+        return torch.from_numpy(linear_response_feature(mesh).astype(np.float32))
 
 
 def mesh_features(mesh) -> MeshFeatures:
@@ -174,25 +209,27 @@ def mesh_features(mesh) -> MeshFeatures:
     nodes = np.asarray(mesh.nodes, dtype=np.float64)
     zeta, tau = wall_coordinates(nodes, mesh.endo_nodes(), mesh.epi_nodes())
     return MeshFeatures(nodes, mesh_edges(mesh.tets), torch.from_numpy(node_regions(zeta, tau)), zeta, tau,
-                        np.asarray(mesh.tets))
+                        np.asarray(mesh.tets), mesh)
 
 
 def case_graph(feat: MeshFeatures, params, norm: Normalisation, unloaded_mm: np.ndarray | None = None,
-               labelled: bool = True, key=(-1, -1)) -> Data:
+               labelled: bool = True, key=(-1, -1), response: bool = False) -> Data:
     """One case as a graph: x = normalised ED coordinates [n,3]; y = normalised unloading
     displacement (NaN when the label is withheld or unknown); params [1,4] in [0,1]; wall [n,2] =
-    the wall coordinates (ζ, τ), region [n] their base/mid/apex × endo/epi cell."""
+    the wall coordinates (ζ, τ), region [n] their base/mid/apex × endo/epi cell; with `response`,
+    response [n,3] = the mesh's linear response ũ (MeshFeatures.response)."""
     x = norm.coords(feat.ed_mm)
     if unloaded_mm is not None and labelled:
         y = (np.asarray(unloaded_mm, dtype=np.float64) - feat.ed_mm) / norm.disp_scale_mm
     else:
         y = np.full_like(x, np.nan)
+    extra = {"response": feat.response} if response else {}
     return Data(x=torch.from_numpy(x.astype(np.float32)), edge_index=feat.edge_index,
                 y=torch.from_numpy(y.astype(np.float32)),
                 params=torch.from_numpy(norm.params(params).astype(np.float32)).view(1, -1),
                 region=feat.region, wall=feat.wall,
                 labelled=torch.tensor([bool(labelled and unloaded_mm is not None)]),
-                key=torch.tensor([[int(key[0]), int(key[1])]], dtype=torch.long))
+                key=torch.tensor([[int(key[0]), int(key[1])]], dtype=torch.long), **extra)
 
 
 # --------------------------------------------------------------------------- the store
@@ -299,16 +336,19 @@ class DataBundle:
     cases: StoreCases = field(repr=False, default=None)
 
 
-def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: set | None = None) -> list:
+def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: set | None = None,
+                 response: bool = False) -> list:
     out = []
     for key in keys:
         lab = labelled is None or key in labelled
-        out.append(case_graph(cases.case_features(key), cases.params[key], norm, cases.unloaded[key], lab, key))
+        out.append(case_graph(cases.case_features(key), cases.params[key], norm, cases.unloaded[key], lab, key,
+                              response))
     return out
 
 
 def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 1.0,
-                        cases: StoreCases | None = None, train_fraction: float = 1.0) -> DataBundle:
+                        cases: StoreCases | None = None, train_fraction: float = 1.0,
+                        response: bool = False) -> DataBundle:
     """Read the store, split it, keep `train_fraction` of the training shapes (learning curves),
     withhold labels outside the SR subset, fit the normalisation on the training split (ED
     coordinates of every training case; displacements of labelled ones)."""
@@ -322,11 +362,14 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
     train_lab = [k for k in parts["train"] if k in labelled]
     norm = Normalisation.fit(train_ed, [cases.displacement(k) for k in train_lab], cases.attrs["grid"],
                              [cases.params[k] for k in train_lab])
-    return DataBundle(build_graphs(cases, parts["train"], norm, labelled), build_graphs(cases, parts["val"], norm),
-                      build_graphs(cases, parts["test"], norm), norm, parts, labelled,
+    return DataBundle(build_graphs(cases, parts["train"], norm, labelled, response),
+                      build_graphs(cases, parts["val"], norm, response=response),
+                      build_graphs(cases, parts["test"], norm, response=response), norm, parts, labelled,
                       store_fingerprint(cases.attrs, cases.features), cases)
 
 
 def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:
-    """build_training_data for a TrainConfig (store, split, seed, SR, training-shape fraction)."""
-    return build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction)
+    """build_training_data for a TrainConfig (store, split, seed, SR, training-shape fraction; the
+    linear response on the graphs when the model takes it)."""
+    return build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction,
+                               cfg.model.uses_response)

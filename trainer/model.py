@@ -14,6 +14,7 @@ from .sparse_gat import AttentionGraph, SparseGATConv
 
 N_PARAMS = 4
 N_WALL = 2  # wall coordinates ζ, τ
+N_RESPONSE = 3  # the mesh's linear response ũ
 
 
 def _gat(in_dim: int, hidden: int, heads: int, kernel: str, concat: bool = True) -> nn.Module:
@@ -215,7 +216,8 @@ class HeartUnloadNet(nn.Module):
         self.cfg = cfg
         W = cfg.width
         broadcast = cfg.fusion == "broadcast"
-        n_in = 3 + (N_WALL if cfg.node_features == "wall" else 0) + (N_PARAMS if broadcast else 0)
+        n_in = 3 + (N_WALL if cfg.uses_wall else 0) + (N_RESPONSE if cfg.uses_response else 0) \
+            + (N_PARAMS if broadcast else 0)
         self.encoder = MeshEncoder(n_in, cfg.conv, cfg.hidden, cfg.heads, cfg.layers,
                                    cfg.dropout, cfg.gat_kernel)
         regional = cfg.tokens == "regional"
@@ -249,8 +251,8 @@ class HeartUnloadNet(nn.Module):
 
     def encode(self, x, edge_index, batch, params, region, num_graphs: int, wall=None):
         """Node features [N, W] of coordinates x [N, 3]; `wall` [N, 2] = (ζ, τ), used when
-        cfg.node_features == "wall"."""
-        if self.cfg.node_features == "wall":
+        cfg.node_features is "wall" — with "wall-response", [N, 5] = (ζ, τ, ũ)."""
+        if self.cfg.uses_wall:
             x = torch.cat([x, wall.to(x.dtype)], dim=1)
         if self.param_encoder is None:  # A5: parameters broadcast to the nodes
             x = torch.cat([x, params[batch]], dim=1)
@@ -278,7 +280,7 @@ class HeartUnloadNet(nn.Module):
         if batch is None:
             batch = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         B = int(data.num_graphs) if hasattr(data, "num_graphs") and data.num_graphs else 1
-        params, region, wall = data.params, data.region, getattr(data, "wall", None)
+        params, region, wall = data.params, data.region, self._node_extras(data)
         if graph is None and self._uses_attention_graph:
             graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
         if _reconstruct_from is not None:
@@ -296,6 +298,16 @@ class HeartUnloadNet(nn.Module):
         if reverse and cycle and self.cfg.reverse_weight > 0:
             d_rev = self._reverse_on_labelled(data, batch, B, graph)
         return (d_unl, d_ed, d_rev) if reverse else (d_unl, d_ed)
+
+    def _node_extras(self, data):
+        """The node input besides coordinates: (ζ, τ) [N, 2], with the linear response [N, 5]."""
+        wall = getattr(data, "wall", None)
+        if not self.cfg.uses_response:
+            return wall
+        response = getattr(data, "response", None)
+        if response is None:
+            raise ValueError(f"the {self.cfg.node_features} model needs graphs built with response=True")
+        return torch.cat([wall, response.to(wall.dtype)], dim=1)
 
     @property
     def _uses_attention_graph(self) -> bool:
@@ -317,7 +329,7 @@ class HeartUnloadNet(nn.Module):
             return touch.expand(0, 3)
         node = lab[batch]
         x_true = data.x + self.disp_to_coord * torch.nan_to_num(data.y, nan=0.0).to(data.x.dtype)
-        wall = getattr(data, "wall", None)
+        wall = self._node_extras(data)
         if n_lab == B:
             sub_ei, sub_batch, params, region = data.edge_index, batch, data.params, data.region
         else:

@@ -81,25 +81,33 @@ class Predictor:
         out = []
         for i in range(0, len(items), batch_size):
             chunk = items[i:i + batch_size]
-            batch = Batch.from_data_list([case_graph(f, p, self.norm) for f, p, _ in chunk]).to(self.device)
+            batch = Batch.from_data_list([self.graph(f, p) for f, p, _ in chunk]).to(self.device)
             d = self._forward(batch)
             d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
             sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
             out.extend(np.split(d, np.cumsum(sizes)[:-1]))
         return out
 
+    def graph(self, feat: MeshFeatures, params):
+        """One unlabelled case as this network's input graph."""
+        return case_graph(feat, params, self.norm, response=self.cfg.model.uses_response)
+
     def _forward(self, batch) -> torch.Tensor:
         """Normalised unloading displacement of a batch [N, 3], averaged over self.rotations turns."""
         if self.rotations == 1:
             return self.model(batch, cycle=False)[0]
-        x = batch.x
+        x, response = batch.x, getattr(batch, "response", None)
         total = None
         for j in range(self.rotations):
             angle = torch.full((x.shape[0],), 2.0 * math.pi * j / self.rotations, device=x.device)
             batch.x = rotate_xy(x, angle)
+            if response is not None:
+                batch.response = rotate_xy(response, angle)
             d = rotate_xy(self.model(batch, cycle=False)[0].float(), -angle)
             total = d if total is None else total + d
         batch.x = x
+        if response is not None:
+            batch.response = response
         return total / self.rotations
 
     def predict(self, feat: MeshFeatures, params, key=None) -> np.ndarray:
@@ -117,7 +125,7 @@ class Predictor:
             return (time.perf_counter() - t) / len(items) * 1e3
         from torch_geometric.data import Batch
 
-        graphs = [Batch.from_data_list([case_graph(f, p, self.norm) for f, p, _ in items[i:i + batch_size]]).to(self.device)
+        graphs = [Batch.from_data_list([self.graph(f, p) for f, p, _ in items[i:i + batch_size]]).to(self.device)
                   for i in range(0, len(items), batch_size)]
         with torch.no_grad():
             for _ in range(warmup):
