@@ -115,6 +115,7 @@ class ModelConfig:
 
     @property
     def uses_wall(self) -> bool:
+        """Whether the node input holds the wall coordinates (ζ, τ)."""
         return self.node_features in ("wall", "wall-response")
 
     @property
