@@ -74,7 +74,8 @@ def _permuted(g, perm):
     return h
 
 
-@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5", "A1ema-wall", "A1ema-resp-d0"])
+@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5", "A1ema-wall", "A1ema-resp-d0",
+                                  "A1ema-resp-d0-gcn", "R5-resp-d0"])
 def test_permutation_equivariance(name, graphs):
     torch.manual_seed(1)
     model = build_model(small(named_config(name)), 0.1).eval()
@@ -231,6 +232,22 @@ def test_reverse_term_supervises_the_reverse_decoder(graphs):
     assert float(terms["reverse"].detach()) == 0.0 and torch.isfinite(terms["loss"])
     terms["loss"].backward()  # every reverse-decoder weight still gets a (zero) gradient, as DDP needs
     assert all(p.grad is not None for p in model.dec_ed.parameters())
+
+
+def test_reverse_pass_on_a_mixed_batch_keeps_each_node_input(graphs):
+    """R5-resp-d0: the reverse pass on the labelled graphs of a mixed batch takes those graphs' own
+    wall coordinates and linear response (a sub-batch of the node input), so it equals the pass on
+    the labelled graph alone."""
+    torch.manual_seed(8)
+    model = build_model(small(named_config("R5-resp-d0")), 0.1).eval()
+    unlabelled = graphs[0].clone()
+    unlabelled.y = torch.full_like(unlabelled.y, float("nan"))
+    unlabelled.labelled = torch.tensor([False])
+    with torch.no_grad():
+        alone = model(Batch.from_data_list([graphs[1]]), reverse=True)[2]
+        mixed = model(Batch.from_data_list([unlabelled, graphs[1]]), reverse=True)[2]
+    assert mixed.shape == (graphs[1].num_nodes, 3)
+    torch.testing.assert_close(mixed, alone, atol=1e-5, rtol=1e-4)
 
 
 def test_unloading_only_cycle_gradient(graphs):

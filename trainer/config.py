@@ -176,6 +176,14 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
                                   output_scale="load"),
     # A1ema-wall-d0 with the mesh's linear FE response as node input too
     "A1ema-resp-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0),
+    # the GCN baseline (A4) given the same inputs and recipe as A1ema-resp-d0: the fair test of attention
+    "A1ema-resp-d0-gcn": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0,
+                                 conv="gcn"),
+    # R5 (the mean-teacher cycle) with A1ema-resp-d0's inputs, for the low-SR comparison on large
+    # stores: λ_cycle at half weight in the first epoch, full from the second (an SR 3 % epoch of the
+    # 60-shape paper grid is ~1,900 steps; R5's 10-epoch ramp was ~400 steps on the 20-shape store)
+    "R5-resp-d0": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=2, cycle_grad="teacher",
+                          lambda_cycle=1.0, ema_decay=0.99, node_features="wall-response", dropout=0.0),
 }
 CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
                "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
@@ -184,7 +192,8 @@ CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no
                "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | "
                "A1ema-wall-d0 (A1ema-wall, no dropout) | "
                "A1ema-wall-d0-load (A1ema-wall-d0, output scaled by the loading's displacement size) | "
-               "A1ema-resp-d0 (A1ema-wall-d0 plus the mesh's linear FE response as node input) | pca")
+               "A1ema-resp-d0 (A1ema-wall-d0 plus the mesh's linear FE response as node input) | "
+               "A1ema-resp-d0-gcn (A1ema-resp-d0 with GCN layers) | R5-resp-d0 (R5 with A1ema-resp-d0's inputs) | pca")
 
 
 def named_config(name: str) -> ModelConfig:
