@@ -232,6 +232,12 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     r = evaluate_run(run, store, "test", plots=False)
     # the synthetic displacement is smooth and low-dimensional: the baseline should get close
     assert r["summary"]["md_mm"] < 0.5 and r["summary"]["cases"] > 0
+    from trainer.pca import RIDGE_GRID, PCABaseline
+    fitted = load_run(run)["best_model"]
+    assert float(fitted["ridge"]) in RIDGE_GRID  # chosen on the validation cases
+    older = {k: v for k, v in fitted.items() if k != "feature_map"}  # a fit from before session 18
+    with pytest.raises(TrainerError, match="older feature map"):
+        PCABaseline(older)
 
 
 def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):

@@ -359,15 +359,17 @@ def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0
 
     c = bundle.cases
     keys = sorted(bundle.labelled)
+    validation = {tuple(k): c.displacement(tuple(k)) for k in bundle.split.get("val", []) if tuple(k) in c.unloaded}
     pca = PCABaseline.fit(c.features, keys, c.params, {k: c.displacement(k) for k in keys}, bundle.norm,
-                          cfg.model.pca_components, cfg.model.pca_ridge)
+                          cfg.model.pca_components, cfg.model.pca_ridge, validation=validation)
     if dist.is_main and dist.write_local:
         state = {**base_state(cfg, bundle, "pca"), "model": pca.state_dict(), "best_model": pca.state_dict(),
                  "epoch": 1, "history": [], "finished": True, "n_parameters": int(sum(v.numel() for v in pca.state_dict().values()))}
         save_checkpoint(run_checkpoint_path(run_dir), state)
         write_metrics_csv(run_dir / "metrics.csv", [])
         dist.log(f"pca: fitted on {len(keys)} labelled training cases "
-                 f"({pca.s['disp_comps'].shape[0]} displacement components)")
+                 f"({pca.s['disp_comps'].shape[0]} displacement components, ridge "
+                 f"{float(np.ravel(pca.s['ridge'])[0]):g}{' chosen on the validation cases' if validation else ''})")
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": 1, "epoch": 1, "resumed_from": 0,
             "best_epoch": 1, "best_val_loss": None, "stopped_early": False,
             "n_parameters": int(sum(v.numel() for v in pca.state_dict().values())),
