@@ -21,8 +21,9 @@ $HEARTCTL status --store "$OUT/local.zarr"
 
 echo
 echo "== 4. Train HeartUnloadNet on that store (Ray Train, two CPU workers, a few epochs) and evaluate it"
+echo "   (configuration A1ema-resp-d0, our best on the paper grid; --config paper is the paper's model)"
 rm -rf "$OUT/run_local"
-$HEARTCTL train --local --store "$OUT/local.zarr" --run-dir "$OUT/run_local"
+$HEARTCTL train --local --store "$OUT/local.zarr" --run-dir "$OUT/run_local" --config A1ema-resp-d0
 $HEARTCTL evaluate --run "$OUT/run_local" --store "$OUT/local.zarr"
 
 echo
