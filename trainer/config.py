@@ -76,7 +76,7 @@ class ModelConfig:
     kind: str = "gnn"
     gat_kernel: str = "sparse"
     pca_components: int = 16
-    pca_ridge: float = 1e-2
+    pca_ridge: float = 1e-2  # the PCA regression's ridge when the split has no validation cases (else chosen on them)
 
     def __post_init__(self):
         object.__setattr__(self, "decoder_hidden", tuple(int(v) for v in self.decoder_hidden))
