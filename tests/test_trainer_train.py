@@ -238,6 +238,21 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     older = {k: v for k, v in fitted.items() if k != "feature_map"}  # a fit from before session 18
     with pytest.raises(TrainerError, match="older feature map"):
         PCABaseline(older)
+    # the ridge chosen on the validation cases is the grid's best there
+    from trainer.data import Normalisation, read_store
+    state, cases = load_run(run), read_store(store)
+    norm = Normalisation.from_dict(state["normalisation"])
+    train, val = ([tuple(k) for k in state["split"][name]] for name in ("train", "val"))
+    disp = {k: cases.displacement(k) for k in train + val}
+    val_disp = {k: disp[k] for k in val}
+
+    def pca(**kw):
+        return PCABaseline.fit(cases.features, train, cases.params, disp, norm, **kw)
+
+    grid_md = [pca(ridge=r).mean_distance_mm(cases.features, cases.params, val_disp, norm) for r in RIDGE_GRID]
+    chosen = pca(validation=val_disp)
+    assert float(chosen.s["ridge"]) == RIDGE_GRID[int(np.argmin(grid_md))]
+    assert chosen.mean_distance_mm(cases.features, cases.params, val_disp, norm) == pytest.approx(min(grid_md))
 
 
 def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):

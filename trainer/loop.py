@@ -359,7 +359,7 @@ def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0
 
     c = bundle.cases
     keys = sorted(bundle.labelled)
-    validation = {tuple(k): c.displacement(tuple(k)) for k in bundle.split.get("val", []) if tuple(k) in c.unloaded}
+    validation = {k: c.displacement(k) for k in bundle.split["val"]}  # done cases, all labelled
     pca = PCABaseline.fit(c.features, keys, c.params, {k: c.displacement(k) for k in keys}, bundle.norm,
                           cfg.model.pca_components, cfg.model.pca_ridge, validation=validation)
     if dist.is_main and dist.write_local:
