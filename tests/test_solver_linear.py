@@ -47,3 +47,28 @@ def test_pardiso_memory_is_released(release):
         sizes.append(_anonymous_rss_mb())
     assert np.allclose(A @ x, b)
     assert sizes[-1] - sizes[1] < 40, f"anonymous memory grew {sizes[-1] - sizes[1]:.0f} MB over 10 solvers"
+
+
+def test_sparsity_pattern_sums_duplicates_and_drops_fixed_dofs():
+    """SparsityPattern.matrix equals the dense sum of the COO entries (duplicates added) over the
+    free dofs, in canonical CSR (sorted column indices, int32), with entries on fixed dofs dropped."""
+    from solver.assembly import SparsityPattern
+
+    rng = np.random.default_rng(3)
+    n_full = 40
+    rows = rng.integers(0, n_full, 2_000)
+    cols = rng.integers(0, n_full, 2_000)
+    values = rng.normal(size=rows.size)
+    fixed = np.array([0, 7, 8, 31])
+    free = np.setdiff1d(np.arange(n_full), fixed)
+    full_to_reduced = -np.ones(n_full, np.int64)
+    full_to_reduced[free] = np.arange(free.size)
+    pattern = SparsityPattern(rows, cols, full_to_reduced, free.size)
+    K = pattern.matrix(values)
+    dense = np.zeros((n_full, n_full))
+    np.add.at(dense, (rows, cols), values)
+    np.testing.assert_allclose(K.toarray(), dense[np.ix_(free, free)], rtol=1e-12, atol=1e-12)
+    assert K.has_canonical_format and K.indices.dtype == np.int32 and K.indptr.dtype == np.int32
+    assert pattern.nnz == np.unique(full_to_reduced[rows[pattern.keep]] * free.size
+                                    + full_to_reduced[cols[pattern.keep]]).size
+    assert not pattern.keep[np.isin(rows, fixed) | np.isin(cols, fixed)].any()
