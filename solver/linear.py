@@ -13,9 +13,31 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 
+def _point_pypardiso_at_mkl() -> None:
+    """Set PYPARDISO_MKL_RT to the MKL runtime pip installs beside this interpreter ({prefix}/lib),
+    when it is there and the variable is unset. Without it, importing pypardiso (which builds a
+    default solver) and each new solver search all of {prefix}/lib*/** recursively for the library:
+    1–3 s per process with torch installed, paid by every `heartctl unload`, `solve` and worker."""
+    if os.environ.get("PYPARDISO_MKL_RT"):
+        return
+    import site
+    import sys
+
+    for folder in (os.path.join(sys.prefix, "lib"), os.path.join(sys.prefix, "Library", "bin"),
+                   os.path.join(site.USER_BASE or "", "lib")):
+        try:
+            found = sorted((f for f in os.listdir(folder) if "mkl_rt" in f), key=len)
+        except OSError:
+            continue
+        if found:
+            os.environ["PYPARDISO_MKL_RT"] = os.path.join(folder, found[0])
+            return
+
+
 def available_backends() -> list[str]:
     names = ["superlu"]
     try:
+        _point_pypardiso_at_mkl()
         import pypardiso  # noqa: F401
 
         names.insert(0, "pardiso")

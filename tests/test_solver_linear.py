@@ -72,3 +72,24 @@ def test_sparsity_pattern_sums_duplicates_and_drops_fixed_dofs():
     assert pattern.nnz == np.unique(full_to_reduced[rows[pattern.keep]] * free.size
                                     + full_to_reduced[cols[pattern.keep]]).size
     assert not pattern.keep[np.isin(rows, fixed) | np.isin(cols, fixed)].any()
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="needs pypardiso")
+def test_pardiso_is_found_without_searching_site_packages():
+    """A fresh process with PYPARDISO_MKL_RT unset points pypardiso at the MKL runtime beside the
+    interpreter (pypardiso's own fallback walks every installed package: seconds per process)."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "PYPARDISO_MKL_RT"}
+    code = ("import os, glob\n"
+            "def no_search(*a, **k):\n"
+            "    raise AssertionError('pypardiso searched the installed packages for libmkl_rt')\n"
+            "glob.glob = no_search\n"
+            "from solver.linear import available_backends, SparseSolver\n"
+            "import numpy as np, scipy.sparse as sp\n"
+            "assert available_backends()[0] == 'pardiso'\n"
+            "x = SparseSolver('pardiso').solve(sp.identity(3, format='csr') * 2.0, np.ones(3))\n"
+            "assert np.allclose(x, 0.5) and os.path.exists(os.environ['PYPARDISO_MKL_RT'])\n")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
