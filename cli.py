@@ -674,6 +674,9 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
     how = "CUDA graph replay" if pr["cuda_graph"] else ("eager; capture failed: " + pr["capture_error"]
                                                        if pr["capture_error"] else "eager")
     typer.echo(f"inference batch    1, mesh prepared once ({how}): {pr['ms_per_case']:8.3f} ms per case")
+    if r["response_ms_per_mesh"] is not None:
+        typer.echo(f"linear FE response (node input of {r['config']}; CPU, once per mesh, shared by every case "
+                   f"of it): {r['response_ms_per_mesh']:.1f} ms")
     typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "
                f"{r['train_graphs_per_s']:.1f} graphs/s")
 
