@@ -56,8 +56,8 @@ def test_sparsity_pattern_sums_duplicates_and_drops_fixed_dofs():
 
     rng = np.random.default_rng(3)
     n_full = 40
-    rows = rng.integers(0, n_full, 2_000)
-    cols = rng.integers(0, n_full, 2_000)
+    rows = np.concatenate([rng.integers(0, n_full, 2_000), np.full(300, 2)])  # one entry 300+ times
+    cols = np.concatenate([rng.integers(0, n_full, 2_000), np.full(300, 5)])
     values = rng.normal(size=rows.size)
     fixed = np.array([0, 7, 8, 31])
     free = np.setdiff1d(np.arange(n_full), fixed)
