@@ -596,7 +596,8 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
         fail(str(exc))
     if as_json:
         typer.echo(json.dumps({**report["summary"], "nn_md_mm": report["nn_md_mm"],
-                               "ms_per_case_batched": report["ms_per_case_batched"], "split": split,
+                               "ms_per_case_batched": report["ms_per_case_batched"],
+                               "response_ms_per_mesh": report["response_ms_per_mesh"], "split": split,
                                "config": report["config"], "rotations": report["rotations"],
                                "members": report["members"]}))
         return
@@ -618,6 +619,9 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
     con.print(f"inference: {report['summary']['ms_per_case']:.2f} ms per case at batch 1, "
               f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})"
               + (f", each the mean of {report['rotations']} turns about the long axis" if report["rotations"] > 1 else ""))
+    if report["response_ms_per_mesh"] is not None:
+        con.print(f"  + the linear FE response (node input): {report['response_ms_per_mesh']:.0f} ms per mesh on the CPU, "
+                  f"once for all the parameter sets a mesh is unloaded at")
     worst = max(report["by_parameter"], key=lambda r: r["md_mm_mean"])
     con.print(f"per parameter value: worst MD {worst['md_mm_mean']:.3f} mm at {worst['parameter']} = {worst['value']:g} "
               f"({worst['cases']} cases); see by_parameter.csv")

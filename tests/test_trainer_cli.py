@@ -49,6 +49,7 @@ def test_train_evaluate_json(trained):
     for key in ("dsc_1mm", "dsc_01mm", "hd_mm", "md_mm", "sd_mm", "ms_per_case", "cases"):
         assert key in out
     assert out["cases"] > 0 and 0 <= out["dsc_1mm"] <= 1 and out["hd_mm"] >= out["md_mm"] > 0
+    assert out["response_ms_per_mesh"] is None  # this network takes no linear response
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--no-plots",
                          "--out", trained["run"] / "metrics.csv"), "is a file")
     r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--split", "all", "--no-plots")

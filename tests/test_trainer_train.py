@@ -196,6 +196,18 @@ def test_evaluate_equals_hand_computed_metrics(store, tmp_path):
     assert len(_rows(out / "cases.csv")) == len(keys)
 
 
+def test_evaluate_prices_the_linear_response_of_networks_that_take_it(store, tmp_path):
+    """ms_per_case times the network alone; a network with the linear FE response as node input
+    also pays that solve once per mesh, which evaluate reports beside it (None for the others)."""
+    run = tmp_path / "resp"
+    fit(_cfg(store, config_name="resp-small", model=replace(SMALL, node_features="wall-response"), epochs=1), run)
+    report = evaluate_run(run, store, "test", plots=False)
+    assert report["response_ms_per_mesh"] > 0 and report["summary"]["md_mm"] > 0
+    plain = tmp_path / "plain"
+    fit(_cfg(store, epochs=1), plain)
+    assert evaluate_run(plain, store, "test", plots=False)["response_ms_per_mesh"] is None
+
+
 def test_rotation_averaged_prediction_turns_with_the_mesh(store, tmp_path):
     """Averaged over K turns about the long axis, the network's answer is exactly symmetric under a
     turn by 2π/K of the input (about the normalisation centre); K = 1 is the plain network."""

@@ -2,6 +2,7 @@
 breakdown per parameter value, inference time, PNG plots and a VTU error map."""
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ from storage.store import PARAM_NAMES
 
 from .checkpoint import load_run
 from .config import TrainerError
-from .data import check_fingerprint, read_store, store_fingerprint
+from .data import MeshFeatures, check_fingerprint, read_store, store_fingerprint
 from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
 from .predict import Ensemble, Predictor
@@ -67,6 +68,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     disps = pred.predict_many(items, batch_size)
     single_ms = pred.time_ms_per_case(items[:timing_cases], 1)
     batched_ms = pred.time_ms_per_case(items[:max(timing_cases, batch_size)], batch_size)
+    response_ms = _response_ms_per_mesh(pred, items[0][0])
     rows, errors = [], []
     for k, (feat, params, _), d in zip(keys, items, disps):
         true = cases.unloaded[k]
@@ -79,6 +81,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     summary = {"dsc_1mm": agg["dsc_1mm"][0], "dsc_01mm": agg["dsc_01mm"][0], "hd_mm": agg["hd_mm"][0],
                "md_mm": agg["md_mm"][0], "sd_mm": agg["sd_mm"][0], "ms_per_case": single_ms, "cases": len(rows)}
     extras = {"nn_md_mm": agg["nn_md_mm"][0], "ms_per_case_batched": batched_ms, "batch_size": batch_size,
+              "response_ms_per_mesh": response_ms,
               "split": split, "rotations": pred.rotations, "members": len(pred.members),
               "config": " + ".join(m.cfg.config_name for m in pred.members), "kind": pred.kind,
               "device": str(pred.device),
@@ -98,6 +101,20 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     files.append("summary.json")
     return {"summary": summary, **extras, "aggregate": agg, "by_parameter": by_param, "rows": rows,
             "out_dir": str(out_dir), "files": files}
+
+
+def _response_ms_per_mesh(pred, feat, repeats: int = 3) -> float | None:
+    """ms to compute the linear FE response of one mesh (the fastest of `repeats`, on the CPU) when a
+    member network takes it as node input: paid once per mesh, however many parameter sets it is
+    unloaded at, on top of ms_per_case (which times the network alone). None otherwise."""
+    if not any(m.kind == "gnn" and m.cfg.model.uses_response for m in pred.members):
+        return None
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        MeshFeatures.response.func(feat)  # computed afresh, not the cached value
+        times.append(time.perf_counter() - t)
+    return min(times) * 1e3
 
 
 def _by_parameter(rows: list) -> list:
