@@ -418,7 +418,8 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
                   f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
                   if result["members"] > 1 else "")
         typer.echo(f"unloaded at {params.label()} by the network {result['run']} in {result['network_ms']:.1f} ms "
-                   f"(first call with graph building {result['first_call_ms']:.0f} ms); "
+                   f"(first call with graph building{' and the linear FE response' if result['with_response'] else ''} "
+                   f"{result['first_call_ms']:.0f} ms); "
                    f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
         return
     inv = result["inverse"]

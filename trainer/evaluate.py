@@ -107,7 +107,7 @@ def _response_ms_per_mesh(pred, feat, repeats: int = 3) -> float | None:
     """ms to compute the linear FE response of one mesh (the fastest of `repeats`, on the CPU) when a
     member network takes it as node input: paid once per mesh, however many parameter sets it is
     unloaded at, on top of ms_per_case (which times the network alone). None otherwise."""
-    if not any(m.kind == "gnn" and m.cfg.model.uses_response for m in pred.members):
+    if not pred.uses_response:
         return None
     times = []
     for _ in range(repeats):

@@ -163,6 +163,12 @@ class Ensemble:
     def run_label(self) -> str:
         return " + ".join(m.run_label for m in self.members)
 
+    @property
+    def uses_response(self) -> bool:
+        """Whether a member network takes the mesh's linear FE response as node input (one extra
+        linear solve per mesh, on the CPU, before its first case)."""
+        return any(m.kind == "gnn" and m.cfg.model.uses_response for m in self.members)
+
     def sync(self) -> None:
         self.members[0].sync()
 
@@ -239,7 +245,8 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     net_ms = pred.time_ms_per_case([(feat, values, None)], 1, repeats=5, warmup=3)  # the model alone, warm
     guess = mesh.nodes + disp
     out = {"network_ms": net_ms, "first_call_ms": first_ms, "warnings": _warnings(pred, feat, values),
-           "run": pred.run_label, "members": len(pred.members), "spread_mm": spread}
+           "run": pred.run_label, "members": len(pred.members), "spread_mm": spread,
+           "with_response": pred.uses_response}
     if method == "gnn":
         from solver.mesh import MeshError, check_geometry
 
