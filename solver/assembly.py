@@ -42,7 +42,7 @@ class SparsityPattern:
 
     The pattern is scipy's canonical CSR of the kept entries (duplicates merged, column indices
     sorted); each entry's position is then read back from a CSR whose data are 0 … nnz − 1 (a binary
-    search per entry in C), 2–3× faster than np.unique over the entry keys."""
+    search per entry in C), about 2× faster than np.unique over the entry keys."""
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray, full_to_reduced: np.ndarray, n_reduced: int):
         r = full_to_reduced[rows]

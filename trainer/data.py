@@ -197,8 +197,9 @@ class MeshFeatures:
     @cached_property
     def response(self) -> torch.Tensor:
         """[n, 3] float32: the linear response ũ of this ED geometry (linear_response_feature),
-        computed on first use (~0.2 s for 350 nodes) and shared by every case of the shape; an
-        imported case with its own ED geometry (StoreCases.case_features) pays its own solve."""
+        computed on first use (~45 ms for 350 nodes, ~0.1 s for 700, one core) and shared by every
+        case of the shape; an imported case with its own ED geometry (StoreCases.case_features)
+        pays its own solve."""
         if self.mesh is None:
             raise TrainerError("these mesh features carry no mesh to compute the linear response on")
         mesh = self.mesh if np.array_equal(self.mesh.nodes, self.ed_mm) else self.mesh.with_nodes(self.ed_mm)
