@@ -448,6 +448,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           seed: int = typer.Option(0, "--seed", help="Seed of initialisation and shuffling, and of split and SR subset unless --split-seed is given."),
           split_seed: int = typer.Option(None, "--split-seed", help="Seed of split, SR subset and training-shape subset (default: --seed); "
                                          "runs with one split seed and several --seed values form a seed ensemble."),
+          label_seed: int = typer.Option(None, "--label-seed", help="With --sr < 1: seed of the labelled subset only "
+                                         "(default: the split seed); the same test cases, other labelled pairs."),
           rotate_deg: float = RotateDegOpt,
           scale_pct: float = ScalePctOpt,
           lr_schedule: str = LrScheduleOpt,
@@ -487,7 +489,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         run_dir = run_dir.resolve()
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
                           train_fraction=train_fraction, labelled_share=labelled_share, seed=seed, split_seed=split_seed,
-                          rotate_deg=rotate_deg, scale_pct=scale_pct, epochs=epochs if epochs is not None else (5 if local else 500),
+                          label_seed=label_seed, rotate_deg=rotate_deg, scale_pct=scale_pct, epochs=epochs if epochs is not None else (5 if local else 500),
                           batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, patience=patience, bf16=bf16)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")

@@ -147,6 +147,7 @@ def test_mismatched_store(trained):
     (("--no-ray", "--epochs", "0"), ("--epochs",)),
     (("--no-ray", "--rotate-deg", "200"), ("--rotate-deg", "[0, 180]")),
     (("--no-ray", "--split-seed", "-1"), ("--split-seed",)),
+    (("--no-ray", "--label-seed", "1"), ("--label-seed", "--sr")),
     (("--gpus", "1"), ("--gpus",)),
     (("--local", "--no-ray"), ("--no-ray",)),
 ])

@@ -111,6 +111,33 @@ def test_supervision_ratio_really_removes_labels(store):
         TrainConfig(store=store, sr=0.0)
 
 
+def test_label_seed_draws_other_labels_on_the_same_split(store):
+    """--label-seed: another labelled subset of the same size; split and test cases unchanged."""
+    from trainer.config import TrainConfig
+    from trainer.loop import check_same_run
+
+    default = build_training_data(store, "shape", seed=0, sr=0.25)
+    same = build_training_data(store, "shape", seed=0, sr=0.25, label_seed=0)
+    other = build_training_data(store, "shape", seed=0, sr=0.25, label_seed=1)
+    assert same.labelled == default.labelled
+    assert other.split == default.split and len(other.labelled) == len(default.labelled)
+    assert other.labelled != default.labelled and other.labelled <= set(other.split["train"])
+    assert other.labelled == supervised_subset(other.split["train"], 0.25, 1)
+    cfg = TrainConfig(store=store, sr=0.25, split_seed=0, label_seed=1)
+    assert cfg.labels_seed == 1 and cfg.data_seed == 0
+    # naming the default label seed keeps a run's identity; another one refuses to resume it
+    old = TrainConfig(store=store, sr=0.25)
+    assert TrainConfig(store=store, sr=0.25, label_seed=0).identity() == old.identity()
+    with pytest.raises(TrainerError, match="label_seed"):
+        check_same_run({"train_config": old.as_dict()}, cfg, "runs/x")
+    with pytest.raises(TrainerError, match="label_seed"):
+        check_same_run({"train_config": cfg.as_dict()}, old, "runs/x")
+    with pytest.raises(TrainerError, match="needs --sr"):
+        TrainConfig(store=store, label_seed=1)
+    with pytest.raises(TrainerError, match="label-seed"):
+        TrainConfig(store=store, sr=0.25, label_seed=-1)
+
+
 def test_train_fraction_keeps_whole_nested_training_shapes(store):
     """--train-fraction: whole training shapes are dropped (never val or test ones), at least one
     shape stays, a smaller fraction keeps a subset of a larger one's shapes, and the normalisation

@@ -221,6 +221,7 @@ class TrainConfig:
     scale_pct: float = 0.0  # augmentation: training graphs scaled about their base by 1 ± pct/100 (trainer.augment)
     seed: int = 0  # initialisation, shuffling, augmentation; and the data's subsets unless split_seed is set
     split_seed: int | None = None  # split, SR subset and training-shape subset (None: seed)
+    label_seed: int | None = None  # SR subset only (None: the split seed): other labels, same test cases
     epochs: int = 500
     batch_size: int = 16
     lr: float = 1e-3
@@ -248,6 +249,10 @@ class TrainConfig:
             raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
         if self.split_seed is not None and self.split_seed < 0:
             raise TrainerError(f"--split-seed must be ≥ 0, got {self.split_seed}")
+        if self.label_seed is not None and self.label_seed < 0:
+            raise TrainerError(f"--label-seed must be ≥ 0, got {self.label_seed}")
+        if self.label_seed is not None and self.sr >= 1:
+            raise TrainerError("--label-seed draws the SR subset; it needs --sr below 1")
         if self.lr_schedule not in LR_SCHEDULES:
             raise TrainerError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if not 0 <= self.rotate_deg <= 180:
@@ -260,6 +265,13 @@ class TrainConfig:
         """The seed of the split, the SR subset and the training-shape subset: networks trained with
         one data seed and several seeds share their test cases (a seed ensemble)."""
         return self.seed if self.split_seed is None else self.split_seed
+
+    @property
+    def labels_seed(self) -> int:
+        """The seed of the SR subset (which training cases keep their label): --label-seed, else the
+        data seed. Runs with one split seed and several label seeds share their test cases but learn
+        from different labelled pairs."""
+        return self.data_seed if self.label_seed is None else self.label_seed
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -276,6 +288,9 @@ class TrainConfig:
     def identity(self) -> dict:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
-        return {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed, "split_seed": self.data_seed,
-                "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,
-                "scale_pct": self.scale_pct}
+        ident = {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed, "split_seed": self.data_seed,
+                 "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,
+                 "scale_pct": self.scale_pct}
+        if self.labels_seed != self.data_seed:  # runs from before --label-seed keep their identity
+            ident["label_seed"] = self.labels_seed
+        return ident

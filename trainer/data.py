@@ -350,16 +350,17 @@ def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: s
 
 def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 1.0,
                         cases: StoreCases | None = None, train_fraction: float = 1.0,
-                        response: bool = False) -> DataBundle:
+                        response: bool = False, label_seed: int | None = None) -> DataBundle:
     """Read the store, split it, keep `train_fraction` of the training shapes (learning curves),
     withhold labels outside the SR subset, fit the normalisation on the training split (ED
-    coordinates of every training case; displacements of labelled ones)."""
+    coordinates of every training case; displacements of labelled ones). `label_seed` draws the SR
+    subset (default: `seed`, which draws the split)."""
     cases = cases or read_store(store)
     if not cases.params:
         raise TrainerError(f"store {store} has no done cases to train on")
     parts = make_split(cases.keys, cases.params, split, seed, cases.attrs)
     parts["train"] = subsample_shapes(parts["train"], train_fraction, seed)
-    labelled = supervised_subset(parts["train"], sr, seed)
+    labelled = supervised_subset(parts["train"], sr, seed if label_seed is None else label_seed)
     train_ed = [cases.ed(k) for k in parts["train"]]
     train_lab = [k for k in parts["train"] if k in labelled]
     norm = Normalisation.fit(train_ed, [cases.displacement(k) for k in train_lab], cases.attrs["grid"],
@@ -374,4 +375,4 @@ def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:
     """build_training_data for a TrainConfig (store, split, seed, SR, training-shape fraction; the
     linear response on the graphs when the model takes it)."""
     return build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction,
-                               cfg.model.uses_response)
+                               cfg.model.uses_response, cfg.labels_seed)

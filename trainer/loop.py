@@ -167,8 +167,9 @@ def pick_resume_state(candidates: list) -> dict | None:
 def check_same_run(state: dict, cfg: TrainConfig, run_dir: Path) -> None:
     """TrainerError unless the checkpoint `state` was written by a run `cfg` may resume."""
     saved = TrainConfig.from_dict(state["train_config"])
-    if saved.identity() != cfg.identity():
-        diff = [k for k in cfg.identity() if saved.identity()[k] != cfg.identity()[k]]
+    old, new = saved.identity(), cfg.identity()
+    if old != new:
+        diff = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
         raise TrainerError(f"run directory {run_dir} holds a run with another {', '.join(diff)} "
                            f"(config {saved.config_name}, split {saved.split}, SR {saved.sr:g}, seed {saved.seed}); "
                            f"use a new --run-dir")
@@ -259,7 +260,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     if dist.is_main:
         kept = f" of {cfg.train_fraction:g} of the training shapes" if cfg.train_fraction < 1 else ""
         dist.log(f"{cfg.config_name}: {n_params:,} parameters; {len(bundle.train)} training cases{kept} "
-                 f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}), {len(bundle.val)} validation, "
+                 f"({len(bundle.labelled)} labelled, SR {cfg.sr:g}"
+                 + (f", label seed {cfg.labels_seed}" if cfg.label_seed is not None else "")
+                 + f"), {len(bundle.val)} validation, "
                  f"{len(bundle.test)} test; {dist.world} process(es) on {dist.device.type}"
                  + (f"; training graphs turned about the long axis by up to ±{cfg.rotate_deg:g}°"
                     if cfg.rotate_deg else "")
