@@ -73,10 +73,19 @@ def _params(pressure, stiffness, endo, epi):
 
 
 def _check_output(out: Path) -> None:
-    if out.exists() and out.is_dir():
-        raise ValueError(f"output {out} is a directory")
-    if not out.parent.exists():
-        raise ValueError(f"output folder {out.parent} does not exist")
+    from storage.meshfiles import check_output_path
+
+    check_output_path(out)
+
+
+def _write_mesh(out: Path, *args, **kwargs) -> None:
+    """storage.meshfiles.write_mesh, with an OS refusal (disk full, permissions) as a one-line error."""
+    from storage.meshfiles import write_mesh
+
+    try:
+        write_mesh(out, *args, **kwargs)
+    except OSError as exc:
+        fail(f"cannot write {out}: {exc.strerror or exc}")
 
 
 PressureOpt = typer.Option(..., "--pressure", help="ED cavity pressure, mmHg (> 0).")
@@ -106,7 +115,6 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
     from solver.fibres import fibre_frames, helix_angle_at_nodes, transmural_coordinate
     from solver.meshing import mesh_lv
     from solver.shape_model import lv_shape
-    from storage.meshfiles import write_mesh
 
     try:
         _params(1.0, 1.0, endo, epi)
@@ -117,7 +125,7 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
         lv = mesh_lv(shape_def, nodes)
         phi = transmural_coordinate(lv)
         frames = fibre_frames(lv, endo, epi, np.full((4, 1), 0.25), phi)[:, 0]
-        write_mesh(out, lv, point_data={"transmural": phi, "helix_angle_deg": helix_angle_at_nodes(lv, endo, epi, phi)},
+        _write_mesh(out, lv, point_data={"transmural": phi, "helix_angle_deg": helix_angle_at_nodes(lv, endo, epi, phi)},
                    cell_data={"fibre": frames[:, :, 0], "sheet": frames[:, :, 1]}, units=units.value)
     except _input_errors() as exc:
         fail(str(exc))
@@ -136,7 +144,7 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
     """Forward inflation of an unloaded mesh to the ED pressure."""
     from solver.forward import SolveError
     from solver.lv import forward_solve
-    from storage.meshfiles import read_mesh, write_mesh
+    from storage.meshfiles import read_mesh
 
     try:
         params = _params(pressure, stiffness, endo, epi)
@@ -149,7 +157,7 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
         result = forward_solve(lv, params, fidelity.value, base.value, fibres=fibres)
     except SolveError as exc:
         fail(f"forward solve did not converge: {exc}", code=1)
-    write_mesh(out, lv, result.loaded_nodes, point_data={"displacement": result.displacement},
+    _write_mesh(out, lv, result.loaded_nodes, point_data={"displacement": result.displacement},
                units=units.value, length_fields=("displacement",))
     disp = np.linalg.norm(result.displacement, axis=1)
     s = result.stats
@@ -175,7 +183,7 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
     from solver.forward import SolveError
     from solver.lv import inverse_solve
-    from storage.meshfiles import read_mesh, write_mesh
+    from storage.meshfiles import read_mesh
 
     try:
         params = _params(pressure, stiffness, endo, epi)
@@ -203,7 +211,7 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
     except SolveError as exc:
         fail(f"inverse solve did not converge: {exc}", code=1)
     shift = lv.nodes - result.unloaded_nodes
-    write_mesh(out, lv, result.unloaded_nodes, point_data={"displacement": shift},
+    _write_mesh(out, lv, result.unloaded_nodes, point_data={"displacement": shift},
                units=units.value, length_fields=("displacement",))
     d = np.linalg.norm(shift, axis=1)
     typer.echo(f"unloaded at {params.label()} ({fidelity.value}, {base.value} base): {result.updates} updates, "
@@ -393,7 +401,6 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
                          fibres: str, asked: dict, rotations: int = 1):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
     from solver.forward import SolveError
-    from storage.meshfiles import write_mesh
     from trainer.predict import unload_with_network
 
     try:
@@ -411,7 +418,7 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
     if result["members"] > 1 and method == "gnn":  # hybrid: the FE answer, no network spread to show
         point_data["ensemble_spread"] = result["spread_mm"]
         lengths.append("ensemble_spread")
-    write_mesh(out, lv, unloaded, point_data=point_data, units=units, length_fields=tuple(lengths))
+    _write_mesh(out, lv, unloaded, point_data=point_data, units=units, length_fields=tuple(lengths))
     d = np.linalg.norm(shift, axis=1)
     if method == "gnn":
         spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
@@ -495,6 +502,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             raise StoreError(f"no heartctl store at {store}")
         if not run_dir.parent.exists():
             raise TrainerError(f"folder {run_dir.parent} does not exist")
+        if not os.access(run_dir if run_dir.is_dir() else run_dir.parent, os.W_OK | os.X_OK):
+            raise TrainerError(f"--run-dir {run_dir}: the folder is not writable")
         if run_dir.exists() and not run_dir.is_dir():
             raise TrainerError(f"--run-dir {run_dir} is a file")
         ckpt = run_checkpoint_path(run_dir)

@@ -97,6 +97,26 @@ def write_mesh(path: str | os.PathLike, mesh: TetMesh, nodes_mm: np.ndarray | No
     atomic_write(Path(path), lambda tmp: meshio.write(tmp, out, file_format=_format_of(Path(path))))
 
 
+OUTPUT_SUFFIXES = (".vtu", ".vtk", ".msh", ".inp", ".mesh", ".xml", ".mdpa", ".avs")  # tets and tags read back
+
+
+def check_output_path(path: str | os.PathLike) -> None:
+    """ValueError unless `path` can take a written mesh: a suffix whose format keeps tetrahedra and
+    the surface tags (each round-trips through read_mesh; .stl or .ply would drop the tets), an
+    existing, writable folder, and no directory of that name."""
+    path = Path(path)
+    if path.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise ValueError(f"output {path}: write a mesh as {', '.join(OUTPUT_SUFFIXES)} "
+                         f"(formats that keep the tetrahedra and surface tags)")
+    if path.is_dir():
+        raise ValueError(f"output {path} is a directory")
+    folder = path.parent
+    if not folder.is_dir():
+        raise ValueError(f"output folder {folder} does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"output folder {folder} is not writable")
+
+
 def _format_of(path: Path) -> str | None:
     import meshio
 

@@ -1,6 +1,7 @@
 """heartctl mesh / solve / unload / verify: round trip through files, units, and every bad input
 (one-line error, exit code 2, no output file); a solve that fails exits 1 with its reason."""
 import json
+from pathlib import Path
 
 import meshio
 import numpy as np
@@ -10,7 +11,7 @@ from typer.testing import CliRunner
 from cli import app
 from solver.meshing import mesh_lv
 from solver.shape_model import lv_shape
-from storage.meshfiles import read_mesh, write_mesh
+from storage.meshfiles import OUTPUT_SUFFIXES, read_mesh, write_mesh
 
 runner = CliRunner()
 
@@ -172,6 +173,50 @@ def test_benchmarks_reject_bad_sizes(args, message):
 def test_output_folder_must_exist(tmp_path, lv_file):
     r = run("solve", lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "nope" / "out.vtu")
     assert r.exit_code == 2 and "does not exist" in r.output
+
+
+@pytest.mark.parametrize("name,message", [
+    ("out.stl", "keep the tetrahedra"),  # meshio would write the surface triangles only
+    ("out.xyz", "keep the tetrahedra"),  # no format at all: meshio raised a traceback, after the solve
+    ("ro/out.vtu", "not writable"),
+])
+def test_output_must_hold_tets_in_a_writable_folder(tmp_path, lv_file, monkeypatch, name, message):
+    import os
+
+    (tmp_path / "ro").mkdir(mode=0o500)
+    if os.access(tmp_path / "ro", os.W_OK):  # root: permissions are not enforced, so say what they would
+        real = os.access
+        monkeypatch.setattr(os, "access", lambda p, mode: False if Path(p).name == "ro" else real(p, mode))
+    for command in ("solve", "unload"):
+        r = run(command, lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / name)
+        assert r.exit_code == 2 and message in r.output, r.output
+        assert r.output.count("heartctl: error:") == 1 and "Traceback" not in r.output
+    assert not list(tmp_path.glob("out*")) and not list((tmp_path / "ro").iterdir())
+
+
+def test_a_refused_write_is_one_line_and_leaves_nothing(tmp_path, lv_file, monkeypatch):
+    def disk_full(tmp, *args, **kwargs):
+        Path(tmp).write_bytes(b"partial")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(meshio, "write", disk_full)  # write_mesh's writer, inside the atomic write
+    out = tmp_path / "out.vtu"
+    r = run("mesh", "--shape", 0, "--nodes", 120, "-o", out)
+    assert r.exit_code == 2 and "No space left on device" in r.output, r.output
+    assert r.output.count("heartctl: error:") == 1 and "Traceback" not in r.output
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("suffix", OUTPUT_SUFFIXES)
+def test_every_output_format_reads_back_with_its_surfaces(tmp_path, suffix):
+    lv = mesh_lv(lv_shape(2), 120)
+    path = tmp_path / f"a{suffix}"
+    write_mesh(path, lv, units="cm")
+    back = read_mesh(path, units="cm")
+    np.testing.assert_array_equal(back.tets, lv.tets)
+    np.testing.assert_allclose(back.nodes, lv.nodes, rtol=1e-6, atol=1e-6)
+    for surface in ("endo", "epi", "base"):
+        assert len(getattr(back, surface)) == len(getattr(lv, surface)) > 0
 
 
 def test_shape_model_mesh_written_and_read_back_identically(tmp_path):

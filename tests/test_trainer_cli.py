@@ -202,15 +202,16 @@ def test_bench_model_small():
 
 
 def test_bench_ablation_table(trained, tmp_path):
-    """Two configurations on one split: a table row each with the evaluate metrics, files written,
-    and a rerun resumes (no retraining) with the same figures; an unknown name → exit 2."""
+    """Three configurations on one split (one takes the linear FE response, the others share its
+    graphs): a table row each with the evaluate metrics, files written, and a rerun resumes (no
+    retraining) with the same figures; an unknown name → exit 2."""
     root = tmp_path / "abl"
-    args = ("bench", "ablation", "--store", trained["store"], "--root", root, "--configs", "A1,pca",
+    args = ("bench", "ablation", "--store", trained["store"], "--root", root, "--configs", "A1,pca,A1ema-resp-d0",
             "--epochs", 1, "--batch-size", 8, "--json")
     r = run(*args)
     assert r.exit_code == 0, r.output
     table = json.loads(r.output.strip().splitlines()[-1])
-    assert [row["config"] for row in table["rows"]] == ["A1", "pca"]
+    assert [row["config"] for row in table["rows"]] == ["A1", "pca", "A1ema-resp-d0"]
     for row in table["rows"]:
         assert row["cases"] > 0 and row["md_mm"] > 0 and 0 <= row["dsc_1mm"] <= 1 and row["hd_mm"] >= row["md_mm"]
     assert (root / "ablation.csv").is_file() and (root / "A1" / "checkpoint.pt").is_file()

@@ -36,7 +36,8 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
     models = {name: named_config(name) for name in configs}  # unknown names fail before any training
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    bundle = training_data(base)
+    takes_response = next((m for m in models.values() if m.uses_response), base.model)
+    bundle = training_data(replace(base, model=takes_response))  # the response is built once, if any model needs it
     rows = []
     for name, model in models.items():
         run_dir = root / run_name(name, base.sr)
