@@ -474,7 +474,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     from storage.store import StoreError, inspect_store
     from trainer.checkpoint import load_checkpoint, run_checkpoint_path
     from trainer.config import TrainConfig, TrainerError, named_config
-    from trainer.data import training_data
+    from trainer.data import check_split, training_data
     from trainer.loop import check_resumable, check_same_run
     from trainer.splits import parse_split
 
@@ -512,6 +512,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             check_same_run(state, cfg, run_dir)
             if not (no_ray or model.kind == "pca"):  # the plain loop checks the store itself
                 check_resumable(state, cfg, training_data(cfg), run_dir)
+        elif not (no_ray or model.kind == "pca"):
+            check_split(cfg)
         import torch
 
         if gpus and not address and torch.cuda.device_count() < gpus:

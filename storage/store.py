@@ -444,6 +444,10 @@ class PairReader:
     def status(self, shape_id: int) -> np.ndarray:
         return self._shape(shape_id)["status"][...]
 
+    def case_params(self, shape_id: int) -> np.ndarray:
+        """[n_cases, 4] the shape's case parameters (PARAM_NAMES order), done or not; no mesh is read."""
+        return self._shape(shape_id)["params"][...]
+
     def stats(self, shape_id: int) -> np.ndarray:
         return self._shape(shape_id)["stats"][...]
 

@@ -142,6 +142,8 @@ def test_mismatched_store(trained):
 @pytest.mark.parametrize("args,words", [
     (("--no-ray", "--split", "lovo:Q=1"), ("axis",)),
     (("--no-ray", "--split", "lovo:P=10"), ("no done case", "8, 12")),
+    (("--split", "lovo:P=10"), ("no done case", "8, 12")),  # the Ray path: refused before Ray starts
+    (("--split", "source"), ("source",)),
     (("--no-ray", "--config", "A7"), ("--config",)),
     (("--no-ray", "--sr", "0"), ("--sr",)),
     (("--no-ray", "--epochs", "0"), ("--epochs",)),

@@ -284,8 +284,7 @@ def read_store(location, keys: list | None = None) -> StoreCases:
     wanted = None if keys is None else {(int(a), int(b)) for a, b in keys}
     shape_ids = reader.shape_ids() if wanted is None else sorted({k[0] for k in wanted} & set(reader.shape_ids()))
     features, params, unloaded, loaded = {}, {}, {}, {}
-    attrs = dict(reader.attrs)
-    attrs["shape_source_split"] = {s: reader._shape(s).attrs.get("source_split") for s in shape_ids}
+    attrs = _split_attrs(reader, shape_ids)
     for case in reader.iter_done(shape_ids):
         key = (case.shape_id, case.index)
         if wanted is not None and key not in wanted:
@@ -298,6 +297,27 @@ def read_store(location, keys: list | None = None) -> StoreCases:
         if np.abs(ed - features[case.shape_id].ed_mm).max() > ED_TOLERANCE_MM:
             loaded[key] = ed
     return StoreCases(attrs, features, params, unloaded, loaded)
+
+
+def _split_attrs(reader: PairReader, shape_ids: list) -> dict:
+    """The store's root attributes plus each shape's source split (for --split source)."""
+    attrs = dict(reader.attrs)
+    attrs["shape_source_split"] = {s: reader._shape(s).attrs.get("source_split") for s in shape_ids}
+    return attrs
+
+
+def check_split(cfg) -> None:
+    """Draw the split, training-shape subset and SR subset of a TrainConfig's store from the done
+    cases' keys and parameters alone (no meshes, no graphs): TrainerError for a split the store
+    cannot give (a LOVO value it lacks, one shape, no recorded source split). A fresh Ray run checks
+    this before its workers start, since they would retry a refusal --max-failures times."""
+    reader = open_reader(cfg.store)
+    keys = reader.done_cases()
+    shape_ids = sorted({k[0] for k in keys})
+    table = {s: reader.case_params(s) for s in shape_ids}
+    params = {k: np.asarray(table[k[0]][k[1]], dtype=np.float64) for k in keys}
+    parts = make_split(keys, params, cfg.split, cfg.data_seed, _split_attrs(reader, shape_ids))
+    supervised_subset(subsample_shapes(parts["train"], cfg.train_fraction, cfg.data_seed), cfg.sr, cfg.labels_seed)
 
 
 def store_fingerprint(attrs: dict, features: dict) -> dict:
