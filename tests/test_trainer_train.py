@@ -61,6 +61,18 @@ def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
         fit(_cfg(store, epochs=3, rotate_deg=10.0), run)
 
 
+def test_resume_obeys_a_new_patience_and_learning_rate(store, tmp_path):
+    """A run stopped early trains on when rerun with a longer --patience; a new --lr is the rate the
+    resumed epochs use (the plateau schedule would otherwise keep the saved one)."""
+    run = tmp_path / "stop"
+    s = fit(_cfg(store, epochs=8, patience=1, lr=0.1), run)  # a rate this high stops it within a few epochs
+    assert s["stopped_early"] and s["epoch"] < 8
+    assert fit(_cfg(store, epochs=8, patience=1, lr=0.1), run)["epochs_run"] == 0  # same patience: stays stopped
+    s2 = fit(_cfg(store, epochs=s["epoch"] + 1, patience=50, lr=3e-4), run)
+    assert s2["epochs_run"] == 1 and s2["epoch"] == s["epoch"] + 1
+    assert float(_rows(run / "metrics.csv")[-1]["lr"]) == pytest.approx(3e-4)
+
+
 def test_resumed_run_equals_an_uninterrupted_one(store, tmp_path):
     """Dropout draws, rotation angles, optimiser, scheduler and weight average all continue where
     they stopped: two epochs in one go and one epoch + a resumed second give the same weights (one

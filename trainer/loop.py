@@ -236,10 +236,16 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         best_val, best_epoch = float(state["best_val"]), int(state["best_epoch"])
         bad_epochs, history = int(state["bad_epochs"]), list(state["history"])
         best_model = state.get("best_model")
-        stopped = bool(state.get("stopped_early", False))
+        stopped = bad_epochs >= cfg.patience  # a rerun with a longer --patience trains on
         restore_rng(state, dist.device)
         if dist.is_main:
             dist.log(f"resuming {run_dir} from epoch {start_epoch} (best validation {best_val:.4g} at epoch {best_epoch})")
+        saved_lr = float(state["train_config"].get("lr", cfg.lr))
+        if cfg.lr_schedule == "plateau" and saved_lr != cfg.lr:  # cosine sets each epoch's rate itself
+            for group in opt.param_groups:
+                group["lr"] = cfg.lr
+            if dist.is_main:
+                dist.log(f"--lr {cfg.lr:g} (the run started at {saved_lr:g}): the rate restarts at {cfg.lr:g}")
     model.to(dist.device)
     average = WeightAverage(model, cfg.model.ema_decay) if cfg.model.ema_decay > 0 else None
     if average is not None and state is not None:
