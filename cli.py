@@ -101,8 +101,8 @@ RotateDegOpt = typer.Option(0.0, "--rotate-deg", help="Augment: turn each traini
 ScalePctOpt = typer.Option(0.0, "--scale-pct", help="Augment: scale each training graph about its base by a random "
                                                     "factor in 1 ± PCT/100 (exact new FE pairs; 0 = off).")
 LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve the rate after 10 epochs without a better "
-                                                              "validation loss: the paper) | cosine (anneal to 1 % "
-                                                              "of --lr over --epochs).")
+                                                              "validation loss: the paper) | cosine (anneal towards 1 % "
+                                                              "of --lr over --epochs, set per epoch).")
 
 
 @app.command()
