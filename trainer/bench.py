@@ -12,6 +12,7 @@ from solver.parameters import PAPER_GRID
 from storage.store import PARAM_NAMES
 
 from ._malloc import tune_allocator
+from .averaging import WeightAverage
 from .config import TrainerError, named_config
 from .data import MeshFeatures, Normalisation, case_graph, mesh_features
 from .model import build_model, count_parameters, loss_terms
@@ -107,13 +108,17 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     data = Batch.from_data_list([graph() for _ in range(tb)]).to(dev)
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
+    average = WeightAverage(model, cfg.ema_decay) if cfg.ema_decay > 0 else None
+    uses_teacher = average is not None and cfg.cycle and cfg.cycle_grad == "teacher"
 
-    def step():
+    def step():  # the training loop's step (trainer.loop.fit): reverse decoder, mean teacher, weight average
         opt.zero_grad(set_to_none=True)
         with amp:
-            d_unl, d_ed = run(data)
-        loss_terms(d_unl, d_ed, data, cfg.lambda_cycle)["loss"].backward()
+            d_unl, d_ed, d_rev = run(data, reverse=True, teacher=average.teacher() if uses_teacher else None)
+        loss_terms(d_unl, d_ed, data, cfg.lambda_cycle, d_rev, cfg.reverse_weight)["loss"].backward()
         opt.step()
+        if average is not None:
+            average.update(model)
 
     s = _timed(step, dev, min_s, min_runs=2, first=compile_s)
     return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
