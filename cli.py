@@ -908,7 +908,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
              dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cases, core-hours from a calibration solve) and exit."),
              retry_failed: bool = typer.Option(False, "--retry-failed", help="Also rerun cases recorded as failed."),
-             max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × CPUs); a task is one pressure chain."),
+             max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × the cluster's CPUs, re-read as nodes join); a task is one pressure chain."),
              warm_start: bool = typer.Option(True, "--warm-start/--no-warm-start", help="Start each inverse from the unloaded geometry of its chain's lower pressures (default) or from the ED mesh."),
              as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
     """Generate FE pairs (inverse + forward) over shapes × P × C × θendo × θepi into a Zarr store, on Ray.
@@ -985,7 +985,9 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_before + report.failed} failed "
                f"of {report.total} ({report.done} done and {report.failed} failed in this run, "
                f"{report.submitted} submitted); meshing {report.phase1_s:.1f} s, pairs {report.phase2_s:.1f} s "
-               f"on {report.cpus:g} CPUs ({rate:.2f} cases/s)" if report.submitted else
+               f"on {report.cpus:g} CPUs ({rate:.2f} cases/s)"
+               + (f"; {report.lost} cases lost with their workers are still pending (rerun to solve them)"
+                  if report.lost else "") if report.submitted else
                f"{store}: nothing to run — {report.done_before} done, {report.failed_before} failed of {report.total}")
 
 

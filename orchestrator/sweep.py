@@ -2,8 +2,9 @@
 phase 2 runs the pairs as Ray tasks, one pressure chain per task (bounded in flight with `ray.wait`);
 tasks return arrays and the driver — the store's only writer — validates, writes and marks each case.
 
-Failures: a lost worker or node is retried by Ray (`max_retries`); a solver failure is retried
-once inside the task with a more robust setting, then recorded as failed with its reason. The
+Failures: a lost worker or node is retried by Ray (`max_retries`), after which the task's cases stay
+pending for the next run; a solver failure (or any exception a case's solve raises) is retried once
+inside the task with a more robust setting, then recorded as failed with its reason. The
 sweep never stops for one case. Resume: cases already done (or failed, unless retry_failed) are
 never resubmitted.
 """
@@ -44,6 +45,7 @@ class SweepReport:
     failed: int = 0
     meshed_shapes: int = 0
     mesh_failures: int = 0
+    lost: int = 0  # cases of tasks lost to the infrastructure (worker or node died after retries): left pending
     phase1_s: float = 0.0
     phase2_s: float = 0.0
     wall_s: float = 0.0
@@ -176,7 +178,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     Each task solves one pressure chain (`grid.pressure_chains`: the cases of a shape that differ only
     in pressure); with `warm_start` each inverse in it starts from the unloaded geometry extrapolated
     from the chain's lower pressures; `chain_length` 1 makes every pair its own task.
-    `max_in_flight` counts tasks."""
+    `max_in_flight` counts tasks (default: InFlightLimit, twice the cluster's CPUs as nodes join)."""
     import ray
 
     if not ray.is_initialized():
@@ -184,13 +186,13 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     t_start = time.perf_counter()
     store = open_or_create(spec, location)
     cpus = float(ray.cluster_resources().get("CPU", 1.0))
-    max_in_flight = max_in_flight or max(2, int(2 * cpus))
+    limit = InFlightLimit(max_in_flight, lambda: float(ray.cluster_resources().get("CPU", 0.0)))
     K = store.n_cases
     counts_before = _count(store, spec.shapes)
     report = SweepReport(total=spec.n_cases, done_before=counts_before[DONE], failed_before=counts_before[FAILED],
                          cpus=cpus)
     run = store.begin_run({"host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus,
-                           "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": max_in_flight,
+                           "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": limit.value,
                            "done_before": report.done_before, "failed_before": report.failed_before,
                            "warm_start": warm_start})
     report.run = run
@@ -233,7 +235,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
             bar.phase(f"solving {n_pairs} pairs ({len(todo)} pressure chains) on {cpus:g} CPUs")
             inflight: dict = {}
             while todo or inflight:
-                while todo and len(inflight) < max_in_flight:
+                while todo and len(inflight) < limit.current():
                     s, chain = todo.popleft()
                     if s not in mesh_refs:
                         mesh_refs[s] = ray.put(_tet_mesh(store, s))
@@ -246,9 +248,12 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
                     s, chain, submitted_at = inflight.pop(ref)
                     try:
                         results = ray.get(ref)
-                    except Exception as exc:  # task error, or worker lost after max_retries
-                        lost = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
-                        results = [lost] * len(chain)
+                    except ray.exceptions.RayTaskError as exc:  # the task's own code raised
+                        error = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
+                        results = [error] * len(chain)
+                    except Exception:  # worker or node lost after max_retries: not the case's fault
+                        report.lost += len(chain)  # left pending; a rerun solves them
+                        continue
                     for k, result in zip(chain, results):
                         t_w = time.perf_counter()
                         status = _record(store, s, k, result, submitted_at, run)
@@ -263,6 +268,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
                             on_event({"shape": s, "case": k, "status": status, "report": report})
                 store.flush(FLUSH_INTERVAL_S)
             report.phase2_s = time.perf_counter() - t2
+            report.cpus = max(report.cpus, limit.cpus_seen)
     finally:
         store.flush()
         report.wall_s = time.perf_counter() - t_start
@@ -272,6 +278,28 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
         except Exception:
             pass
     return report
+
+
+class InFlightLimit:
+    """How many tasks the driver keeps submitted: `fixed` when given, else twice the cluster's CPUs,
+    read again every `every_s` seconds. On an autoscaling cluster (a head with no CPUs, workers
+    added on demand) the waiting tasks are the demand the autoscaler sees, so the limit must grow
+    with the nodes that join: 2 × CPUs keeps one CPU's worth of tasks queued per CPU running."""
+
+    def __init__(self, fixed: int | None, cluster_cpus, every_s: float = 5.0, clock=time.monotonic):
+        self.fixed, self._cpus, self.every_s, self._clock = fixed, cluster_cpus, every_s, clock
+        self.cpus_seen = 0.0
+        self._next = -float("inf")
+        self.value = fixed if fixed is not None else 2
+        self.current()
+
+    def current(self) -> int:
+        if self.fixed is None and self._clock() >= self._next:
+            cpus = self._cpus()
+            self.cpus_seen = max(self.cpus_seen, cpus)
+            self.value = max(2, int(2 * cpus))
+            self._next = self._clock() + self.every_s
+        return self.value
 
 
 def _tet_mesh(store: PairStore, s: int):

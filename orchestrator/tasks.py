@@ -85,6 +85,11 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
             break
         except (SolveError, MeshError) as exc:
             reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+        except MemoryError:
+            raise  # the worker's trouble, not the case's: Ray retries the task
+        except Exception as exc:  # e.g. a linear solver's "factor is exactly singular": this case fails, the chain goes on
+            line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+            reasons.append(f"{type(exc).__name__}: {line}".strip(" :"))
     wall = time.perf_counter() - t0
     out = {"ok": pair is not None, "attempts": attempts, "host": socket.gethostname(), "pid": os.getpid(),
            "started_at": started_at, "finished_at": time.time(), "task_wall_s": wall,

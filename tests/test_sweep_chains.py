@@ -100,3 +100,44 @@ def test_a_failed_case_does_not_feed_the_next_guess_and_a_folded_guess_is_droppe
     res = run_chain(mesh, chain[::2], "fast")
     assert [r["ok"] for r in res] == [True, True] and [r["warm_start"] for r in res] == [False, False]
     assert res[1]["attempts"] == 1
+
+
+def test_an_unexpected_error_fails_its_case_only(mesh, monkeypatch):
+    """A linear solver's own exception (SciPy's "Factor is exactly singular", a PyPardisoError) is
+    that case's failure, with its type and reason, after the robust retry; the chain's other cases
+    keep their results (before, the whole task raised and every case of the chain was lost)."""
+    import solver.lv
+
+    real = solver.lv.make_pair
+    calls = []
+
+    def singular_at_10(mesh_, params, *args, **kwargs):
+        calls.append(params.pressure_mmhg)
+        if params.pressure_mmhg == 10.0:
+            raise RuntimeError("Factor is exactly singular")
+        return real(mesh_, params, *args, **kwargs)
+
+    monkeypatch.setattr(solver.lv, "make_pair", singular_at_10)
+    res = run_chain(mesh, CHAIN, "fast")
+    assert [r["ok"] for r in res] == [True, False, True]
+    assert res[1]["reason"] == "RuntimeError: Factor is exactly singular" and res[1]["attempts"] == 2
+    assert calls == [6.0, 10.0, 10.0, 14.0]
+    with pytest.raises(MemoryError):  # the worker's trouble: raised, so Ray retries the task
+        monkeypatch.setattr(solver.lv, "make_pair", lambda *a, **k: (_ for _ in ()).throw(MemoryError()))
+        run_case(mesh, CHAIN[0], "fast")
+
+
+def test_in_flight_limit_follows_the_cluster_as_nodes_join():
+    from orchestrator.sweep import InFlightLimit
+
+    now, cpus = [0.0], [0.0]  # an autoscaling cluster: a head with no CPUs
+    limit = InFlightLimit(None, lambda: cpus[0], every_s=5.0, clock=lambda: now[0])
+    assert limit.current() == 2  # enough waiting tasks for the autoscaler to start a node
+    cpus[0] = 32.0
+    assert limit.current() == 2  # read again only every 5 s
+    now[0] = 5.0
+    assert limit.current() == 64 and limit.cpus_seen == 32.0
+    cpus[0], now[0] = 8.0, 11.0  # nodes leave: the limit follows down
+    assert limit.current() == 16 and limit.cpus_seen == 32.0
+    fixed = InFlightLimit(3, lambda: 1 / 0)  # --max-in-flight: the cluster is never asked
+    assert fixed.current() == 3
