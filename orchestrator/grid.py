@@ -125,6 +125,10 @@ class SweepSpec:
 
     @classmethod
     def from_attrs(cls, attrs: dict) -> "SweepSpec":
+        """The sweep that made a store; ValueError for a store of imported pairs (no sweep made it)."""
+        if attrs.get("shape_source") == "imported":
+            raise ValueError(f"this store holds pairs imported from {attrs.get('source', 'another dataset')}; "
+                             f"generate cannot extend it (use a new --store)")
         g = attrs["grid"]
         return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
                    seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"),

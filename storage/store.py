@@ -412,6 +412,7 @@ class PairReader:
         self.stat_names = tuple(self.attrs["stat_names"])
         self.n_cases = int(self.attrs["n_cases_per_shape"])
         self._cache: dict[int, dict] = {}
+        self._groups: dict = {}
 
     def shape_ids(self) -> list[int]:
         """Shapes whose mesh and case arrays exist (ready), sorted."""
@@ -423,7 +424,15 @@ class PairReader:
         return sorted(ids)
 
     def _shape(self, shape_id: int):
-        return self.root["shapes"][str(shape_id)]
+        """The group of a ready shape (looked up once); StoreError for one the store has not meshed."""
+        if shape_id not in self._groups:
+            shapes = self.root["shapes"]
+            key = str(shape_id)
+            if key not in shapes or not shapes[key].attrs.get("ready", False):
+                raise StoreError(f"shape {shape_id} is not meshed in this store (shapes with data: "
+                                 f"{_id_ranges(self.shape_ids())})")
+            self._groups[shape_id] = shapes[key]
+        return self._groups[shape_id]
 
     def _static(self, shape_id: int) -> dict:
         if shape_id not in self._cache:
@@ -507,6 +516,18 @@ def case_to_meshio(reader: PairReader, shape_id: int, k: int, geometry: str = "u
                        cell_data={TAG_NAME: [np.zeros(len(s["tets"]), np.int32), codes]})
     mesh.field_data = {}
     return mesh
+
+
+def _id_ranges(ids: list) -> str:
+    """[0, 1, 2, 5, 7, 8] → "0–2, 5, 7–8" ("none" when empty)."""
+    runs, start = [], None
+    for i, v in enumerate(ids):
+        if start is None:
+            start = v
+        if i + 1 == len(ids) or ids[i + 1] != v + 1:
+            runs.append(f"{start}" if start == v else f"{start}–{v}")
+            start = None
+    return ", ".join(runs) or "none"
 
 
 def export_case(location, shape_id: int, k: int, out, geometry: str = "unloaded") -> dict:

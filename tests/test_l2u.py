@@ -56,6 +56,8 @@ def test_import_converts_cm_to_mm_and_restores_epi_sign(store):
     files = g.attrs["source_files"][str(case.index)]
     assert files == ["ED59_10_150_60_60.vtu", "unloaded59_10_150_60_60.vtu"]
     assert 0.5 < case.stats["min_jacobian"] < 1.0
+    # no solve ran here: the solver's round trip and residual are not invented
+    assert np.isnan(case.stats["roundtrip_error_mm"]) and np.isnan(case.stats["final_residual"])
     # grid positions the dataset lacks are failed with a reason, never data
     status = reader.status(0)
     assert (status == 1).sum() == 4 and (status == 2).sum() == len(status) - 4
@@ -86,6 +88,13 @@ def test_nothing_importable_exits_2_and_leaves_nothing(tmp_path):
 def test_existing_store_is_refused(store, source):
     r = runner.invoke(app, ["import-l2u", str(source), "--store", str(store)])
     assert r.exit_code == 2 and "already exists" in r.output
+
+
+def test_generate_refuses_to_extend_an_imported_store(store):
+    for extra in (["--dry-run"], ["--local"]):
+        r = runner.invoke(app, ["generate", "--store", str(store), *extra])
+        assert r.exit_code == 2 and "generate cannot extend it" in r.output, r.output
+        assert "Traceback" not in r.output and r.output.count("heartctl: error:") == 1
 
 
 def test_forward_consistency_on_one_pair(store):

@@ -94,6 +94,9 @@ def test_round_trip_and_done_only_reads(tmp_path, shape0, real_pair):
     with pytest.raises(StoreError):
         export_case(loc, 0, 0, tmp_path / "pending.vtu")
     assert not (tmp_path / "pending.vtu").exists()
+    with pytest.raises(StoreError, match=r"shape 7 is not meshed .*shapes with data: 0–1"):
+        export_case(loc, 7, 0, tmp_path / "absent.vtu")  # was a KeyError traceback
+    assert not (tmp_path / "absent.vtu").exists()
 
 
 @pytest.mark.parametrize("defect", ["nan", "inverted", "min_j", "roundtrip", "shape"])
