@@ -146,6 +146,12 @@ class SweepSpec:
                 out.append(f"{AXIS_FLAGS[a]} {_fmt(getattr(self, a))} (store has {_fmt(getattr(stored, a))})")
         if stored.fidelity != self.fidelity:
             out.append(f"--fidelity {self.fidelity} (store has {stored.fidelity})")
+        else:  # the same preset name, but its settings edited since (a store must not mix two solvers)
+            now = self.store_attrs()["fidelity_settings"]
+            saved = attrs.get("fidelity_settings") or {}
+            changed = [f"{k} {saved[k]} → {now[k]}" for k in sorted(saved.keys() & now.keys()) if saved[k] != now[k]]
+            if changed:
+                out.append(f"the {self.fidelity} preset's settings ({', '.join(changed)})")
         if stored.seed != self.seed:
             out.append(f"--seed {self.seed} (store has {stored.seed})")
         if stored.nodes != self.nodes:

@@ -4,7 +4,8 @@ Layout (one writer: the sweep driver)::
 
     /                       attrs: schema, schema_version, units, grid, fidelity, seed, mesh_nodes,
                                    base, solver_version, stat_names, runs, ...
-    shapes/<id>/            attrs: shape_id, n_nodes, n_cases, ready, cavity_volume_ml, hosts, failures
+    shapes/<id>/            attrs: shape_id, n_nodes, n_tets, n_cases, ready, hosts, failures,
+                                   info (cavity_volume_ml, mesh quality, meshing host and time)
         ed_reference [n,3]  float64, mm (the ED mesh the pairs were solved on)
         tets [m,4]          int32
         endo/epi/base [k,3] int32 boundary triangles (outward)
@@ -298,6 +299,9 @@ class PairStore:
                                   "n_cases": K, "hosts": {}, "failures": {}, "info": info or {}}))
         g.attrs.update({"ready": True})  # last: a shape without it is re-meshed on resume
         self._tables.pop(shape_id, None)
+        failures = dict(self.attrs.get("mesh_failures", {}))
+        if failures.pop(key, None) is not None:  # an earlier run's failure to mesh it no longer holds
+            self.update_attrs(mesh_failures=failures)
         self._handles.pop(shape_id, None)
 
     def update_shape_attrs(self, shape_id: int, **values) -> None:

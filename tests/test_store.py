@@ -186,6 +186,13 @@ def test_grid_spec():
     other = SweepSpec(**{**SPEC.__dict__, "pressure_mmhg": (8.0,), "fidelity": "accurate"})
     msgs = other.conflicts(SPEC.store_attrs())
     assert any("--pressures 8" in m for m in msgs) and any("--fidelity accurate" in m for m in msgs)
+    edited = SPEC.store_attrs()  # the same preset name, its tolerance edited since the store was made
+    edited["fidelity_settings"] = {**edited["fidelity_settings"], "inverse_tol_mm": 1.0}
+    msgs = SPEC.conflicts(edited)
+    assert len(msgs) == 1 and f"the {SPEC.fidelity} preset's settings (inverse_tol_mm 1.0 → " in msgs[0]
+    older = SPEC.store_attrs()  # a store written before a setting existed still resumes
+    older["fidelity_settings"] = {k: v for k, v in older["fidelity_settings"].items() if k != "inverse_tol_mm"}
+    assert SPEC.conflicts(older) == []
     assert parse_axis("--epi", "-60, -65") == (-60.0, -65.0) and parse_axis("--epi", "") == ()
     with pytest.raises(ValueError, match="comma-separated"):
         parse_axis("--pressures", "4;6")
@@ -215,3 +222,13 @@ def test_opens_by_fsspec_url(shape0):
     store.flush()
     assert PairReader(url).done_cases() == [(0, 1)]
     assert summarize(url)["done"] == 1
+
+
+def test_a_shape_meshed_later_loses_its_mesh_failure(tmp_path, shape0):
+    store = PairStore.create(str(tmp_path / "m.zarr"), SPEC.store_attrs())
+    store.record_mesh_failure(1, "gmsh: could not recover the boundary")
+    store.record_mesh_failure(0, "gmsh: timeout")
+    m = shape0["mesh"]
+    store.write_shape(0, m.nodes, m.tets, m.endo, m.epi, m.base, shape0["coefficients"], shape0["info"])
+    store.flush()
+    assert summarize(store.location)["mesh_failures"] == {"1": "gmsh: could not recover the boundary"}
