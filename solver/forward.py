@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .assembly import MechanicsProblem
-from .linear import SparseSolver
+from .linear import SingularMatrix, SparseSolver
 
 
 STALE_TANGENT_RATE = 0.25  # refactorise when a modified-Newton step reduces |R| by less than 4×
@@ -87,7 +87,10 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
             break
         t0 = time.perf_counter()
         if need_tangent:
-            linsolve.factorize(K)
+            try:
+                linsolve.factorize(K)
+            except SingularMatrix:
+                return z, False, "singular tangent"
             fresh = True
         else:
             fresh = False

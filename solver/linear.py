@@ -46,6 +46,10 @@ def available_backends() -> list[str]:
     return names
 
 
+class SingularMatrix(ArithmeticError):
+    """The linear solver could not factorise the matrix (singular, or numerically so)."""
+
+
 class SparseSolver:
     def __init__(self, backend: str = "auto"):
         if backend == "auto":
@@ -65,11 +69,16 @@ class SparseSolver:
         return self._A is not None
 
     def factorize(self, A: sp.csr_matrix) -> None:
+        """Factorise A for later solves; SingularMatrix when the backend finds it singular."""
         A = A.tocsr()
         A.sort_indices()
         self.factorizations += 1
         if self.backend == "superlu":
-            self._lu = splu(A.tocsc(), permc_spec="COLAMD")
+            try:
+                self._lu = splu(A.tocsc(), permc_spec="COLAMD")
+            except RuntimeError as exc:  # "Factor is exactly singular"
+                self.forget()
+                raise SingularMatrix(f"SuperLU: {exc}") from None
             self._A = A
             return
         import pypardiso
@@ -93,7 +102,11 @@ class SparseSolver:
             ps._call_pardiso(A, dummy)
             self._pattern_key = key
         ps.set_phase(22)
-        ps._call_pardiso(A, dummy)
+        try:
+            ps._call_pardiso(A, dummy)
+        except pypardiso.pardiso_wrapper.PyPardisoError as exc:
+            self.forget()
+            raise SingularMatrix(f"PARDISO: {exc}") from None
         self._A = A
 
     def solve_factored(self, b: np.ndarray) -> np.ndarray:

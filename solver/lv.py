@@ -13,7 +13,7 @@ from .elements import quadrature_barycentric
 from .fibres import FIBRE_RULES, rule_frames, transmural_coordinate
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
-from .linear import SparseSolver
+from .linear import SingularMatrix, SparseSolver
 from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
 from .parameters import CaseParameters
@@ -177,7 +177,10 @@ def linear_response(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | 
     z = problem.zeros()
     R, K, _ = problem.assemble(z, 1.0)
     with SparseSolver() as linsolve:
-        dz = linsolve.solve(K, -R)
+        try:
+            dz = linsolve.solve(K, -R)
+        except SingularMatrix:
+            dz = np.full(K.shape[0], np.nan)
     if not np.all(np.isfinite(dz)):
         raise SolveError("singular tangent at zero strain")
     z[problem.free] += dz

@@ -93,3 +93,34 @@ def test_pardiso_is_found_without_searching_site_packages():
             "assert np.allclose(x, 0.5) and os.path.exists(os.environ['PYPARDISO_MKL_RT'])\n")
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
+
+
+def test_a_singular_matrix_is_a_clear_error_for_both_backends():
+    from solver.linear import SingularMatrix
+
+    singular = sp.csr_matrix(np.array([[1.0, 2.0], [2.0, 4.0]]))
+    with pytest.raises(SingularMatrix, match="SuperLU"):  # SciPy's own RuntimeError, named
+        SparseSolver("superlu").factorize(singular)
+    s = SparseSolver("superlu")
+    with pytest.raises(SingularMatrix):
+        s.factorize(singular)
+    assert not s.has_factor  # no stale factorisation is left to solve with
+
+
+def test_a_tangent_that_will_not_factorise_fails_the_solve_with_its_reason():
+    """On SuperLU (aarch64 installs) a singular tangent raised a RuntimeError traceback through
+    `heartctl solve`; it is a failed solve (SolveError, exit 1) like PARDISO's non-finite step."""
+    from solver.forward import SolveError
+    from solver.linear import SingularMatrix
+    from solver.lv import forward_solve
+    from solver.meshing import mesh_lv
+    from solver.parameters import CaseParameters
+    from solver.shape_model import lv_shape
+
+    class Refusing(SparseSolver):
+        def factorize(self, A):
+            raise SingularMatrix("SuperLU: Factor is exactly singular")
+
+    mesh = mesh_lv(lv_shape(0), 120)
+    with pytest.raises(SolveError, match="singular tangent"):
+        forward_solve(mesh, CaseParameters(8.0, 150.0, 60.0, -60.0), "fast", linsolve=Refusing("superlu"))
