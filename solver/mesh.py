@@ -6,7 +6,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .elements import tet_geometry
 
 TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])  # outward for positive tets
 
@@ -52,9 +51,16 @@ def boundary_facets(tets: np.ndarray) -> np.ndarray:
     return faces[idx[counts == 1]]
 
 
+def signed_tet_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volume of each tet, mm³ (positive when nodes 1, 2, 3 turn counter-clockwise seen
+    from node 0's far side); no inversion, so it is safe on degenerate tets."""
+    x = np.asarray(nodes, dtype=float)[tets]
+    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0])) / 6.0
+
+
 def scaled_jacobian(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Mean-ratio-like quality in [−1, 1]: 6√2 V / l_rms^3 (1 for a regular tet, ≤ 0 inverted)."""
-    vol, _ = tet_geometry(nodes, tets)
+    vol = signed_tet_volumes(nodes, tets)
     x = nodes[tets]
     edges = np.stack([x[:, j] - x[:, i] for i, j in [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]], axis=1)
     l_rms = np.sqrt((edges**2).sum(axis=2).mean(axis=1))
@@ -63,7 +69,7 @@ def scaled_jacobian(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 def orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Reorder each tet's nodes so its volume is positive (for meshes we generate ourselves)."""
-    vol, _ = tet_geometry(nodes, tets)
+    vol = signed_tet_volumes(nodes, tets)
     tets = np.array(tets, dtype=np.int64)
     tets[vol < 0] = tets[vol < 0][:, [0, 2, 1, 3]]
     return tets
@@ -85,7 +91,7 @@ def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
         raise MeshError("mesh has no tetrahedra (only linear 4-node tets are supported)")
     if tets.min() < 0 or tets.max() >= nodes.shape[0]:
         raise MeshError("tet connectivity refers to nodes that do not exist")
-    vol, _ = tet_geometry(nodes, tets)
+    vol = signed_tet_volumes(nodes, tets)
     scale = np.ptp(nodes, axis=0).max() ** 3
     tiny = 1e-12 * scale
     if np.any(np.abs(vol) <= tiny):
@@ -94,7 +100,27 @@ def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     folded = folded_tets(nodes, tets)
     if folded.size:
         raise MeshError(f"mesh has {folded.size} inverted tets (the mesh folds over them; of {len(tets)})")
+    sizes = np.bincount(_tet_components(tets))
+    if sizes.size > 1:
+        raise MeshError(f"mesh is in {sizes.size} separate pieces (tets sharing no face: the largest has "
+                        f"{sizes.max()} of {len(tets)}); the LV wall must be one piece")
     return np.ascontiguousarray(tets, dtype=np.int64)
+
+
+def _tet_components(tets: np.ndarray) -> np.ndarray:
+    """Label tets by face-connected component."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    key = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
+    owner = np.repeat(np.arange(len(tets)), 4)
+    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(inverse, kind="stable")
+    same = inverse[order][1:] == inverse[order][:-1]
+    a, b = owner[order][:-1][same], owner[order][1:][same]
+    graph = coo_matrix((np.ones(a.size), (a, b)), shape=(len(tets), len(tets)))
+    return connected_components(graph, directed=False)[1]
 
 
 def folded_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -161,6 +187,27 @@ def tag_surfaces(nodes: np.ndarray, tets: np.ndarray, base_tol_mm: float | None 
     return rest[labels == endo_label], rest[labels == epi_label], facets[is_base]
 
 
+TAGGED_BASE_NORMAL_Z = 0.99  # a base triangle's outward normal: within ~8° of +z
+TAGGED_BASE_DROP = 0.01  # base nodes within 1 % of the mesh height of its top
+
+
+def _check_surfaces(nodes: np.ndarray, endo: np.ndarray, epi: np.ndarray, base: np.ndarray) -> None:
+    """MeshError unless the surfaces fit the solver's conventions (which fix z on the base and take
+    +z as the long axis): the base a flat cut facing +z at the top of the mesh, the endocardium
+    inside the epicardium. Surfaces found by tag_surfaces fit by construction; tags read from a
+    file are checked, since a turned mesh or swapped tags would otherwise solve a different problem."""
+    p = nodes[base]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    height = np.ptp(nodes[:, 2])
+    if normal[:, 2].min() < TAGGED_BASE_NORMAL_Z or p[:, :, 2].min() < nodes[:, 2].max() - TAGGED_BASE_DROP * height:
+        raise MeshError("the tagged base is not a flat cut facing +z at the top of the mesh (long axis z, "
+                        "base at max z, apex at negative z)")
+    extent = [np.ptp(nodes[np.unique(f)], axis=0).prod() for f in (endo, epi)]
+    if extent[0] >= extent[1]:
+        raise MeshError("the tagged endocardium is not inside the epicardium (are the tags swapped?)")
+
+
 def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=None, info=None) -> TetMesh:
     """Validate and assemble a TetMesh; surfaces are found when not given."""
     tets = check_geometry(nodes, tets)
@@ -181,4 +228,5 @@ def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=Non
     for name, faces in (("endocardium", endo), ("epicardium", epi), ("base", base)):
         if len(faces) == 0:
             raise MeshError(f"mesh has no {name} surface")
+    _check_surfaces(nodes, endo, epi, base)
     return TetMesh(nodes, tets, np.asarray(endo), np.asarray(epi), np.asarray(base), dict(info or {}))

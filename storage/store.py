@@ -160,11 +160,6 @@ def remove_partial_files(location) -> int:
 # --------------------------------------------------------------------------- validation
 
 
-def signed_tet_volumes(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    x = np.asarray(nodes, dtype=float)[tets]
-    return np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0])) / 6.0
-
-
 def validate_pair(tets: np.ndarray, n_nodes: int, unloaded, loaded, stats: dict, roundtrip_tol_mm: float) -> str | None:
     """None when the pair may be marked done, else the reason (one line)."""
     for name, x in (("unloaded", unloaded), ("loaded", loaded)):
@@ -173,6 +168,8 @@ def validate_pair(tets: np.ndarray, n_nodes: int, unloaded, loaded, stats: dict,
             return f"{name} geometry has shape {x.shape}, expected ({n_nodes}, 3)"
         if not np.all(np.isfinite(x)):
             return f"{name} geometry has NaN or infinite coordinates"
+        from solver.mesh import signed_tet_volumes
+
         if signed_tet_volumes(x, tets).min() <= 0:
             return f"{name} geometry has an inverted or degenerate tetrahedron"
     min_j = stats.get("min_jacobian", float("nan"))

@@ -1,6 +1,7 @@
 """heartctl mesh / solve / unload / verify: round trip through files, units, and every bad input
 (one-line error, exit code 2, no output file); a solve that fails exits 1 with its reason."""
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import meshio
@@ -91,6 +92,22 @@ def _write_bad(tmp_path, kind, lv_file):
         meshio.write(path, meshio.Mesh(box.p.T, [("tetra", orient_positive(box.p.T, box.t.T))]))
     elif kind == "missing":
         pass
+    elif kind == "turned":  # tags kept, long axis turned onto x: the base no longer faces +z
+        write_mesh(path, lv, nodes_mm=lv.nodes[:, [2, 1, 0]] * [1.0, 1.0, -1.0])
+    elif kind == "swapped":  # endocardium and epicardium tags exchanged
+        write_mesh(path, replace(lv, endo=lv.epi, epi=lv.endo))
+    elif kind == "apex_base":  # the base tag on apical epicardium
+        apical = lv.epi[np.argsort(lv.nodes[lv.epi].mean(axis=1)[:, 2])[:20]]
+        write_mesh(path, replace(lv, base=apical))
+    elif kind == "floating":  # one separate tet beside the wall
+        extra = lv.nodes[lv.tets[0]] + [0.0, 0.0, -200.0]
+        nodes = np.vstack([lv.nodes, extra])
+        tets = np.vstack([lv.tets, np.arange(lv.n_nodes, lv.n_nodes + 4)[None]])
+        meshio.write(path, meshio.Mesh(nodes, [("tetra", tets)]))
+    elif kind == "repeated":  # a tet with a repeated node: zero volume exactly
+        tets = lv.tets.copy()
+        tets[5, 3] = tets[5, 0]
+        meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
     return path
 
 
@@ -101,6 +118,11 @@ BAD_MESHES = {
     "nan": "NaN",
     "solid": "endocardium",
     "missing": "does not exist",
+    "turned": "flat cut facing +z",
+    "swapped": "not inside the epicardium",
+    "apex_base": "flat cut facing +z",
+    "floating": "separate pieces",
+    "repeated": "degenerate",
 }
 
 
