@@ -1146,5 +1146,42 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
 
 import numpy as np  # noqa: E402  (after the app so `heartctl --help` stays light)
 
+def _usage_exception_types() -> tuple:
+    """(usage errors, other click errors, aborts) of click and of the click typer vendors (≥ 0.16)."""
+    import importlib
+
+    mods = []
+    for name in ("typer._click.exceptions", "click.exceptions"):
+        try:
+            mods.append(importlib.import_module(name))
+        except ImportError:
+            pass
+    aborts = {typer.Abort, *(m.Abort for m in mods if hasattr(m, "Abort"))}
+    return tuple(m.UsageError for m in mods), tuple(m.ClickException for m in mods), tuple(aborts)
+
+
+def main() -> None:
+    """The `heartctl` entry point: the typer app, with usage errors (an unknown option, preset or
+    command, a value that is not a number, a missing option) as one line and exit code 2 like
+    every other bad input, instead of click's framed usage box."""
+    usage_errors, click_errors, aborts = _usage_exception_types()
+    try:
+        code = app(standalone_mode=False)
+    except usage_errors as exc:
+        if type(exc).__name__ == "NoArgsIsHelpError":  # `heartctl bench` alone: the help is the answer
+            typer.echo(exc.format_message(), err=True)
+            sys.exit(2)
+        where = exc.ctx.command_path if exc.ctx is not None else "heartctl"
+        typer.echo(f"heartctl: error: {' '.join(exc.format_message().split())} (see {where} --help)", err=True)
+        sys.exit(2)
+    except click_errors as exc:
+        typer.echo(f"heartctl: error: {' '.join(exc.format_message().split())}", err=True)
+        sys.exit(exc.exit_code)
+    except aborts:
+        typer.echo("heartctl: error: interrupted", err=True)
+        sys.exit(130)
+    sys.exit(code if isinstance(code, int) else 0)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(app())
+    main()

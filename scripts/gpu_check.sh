@@ -16,10 +16,10 @@ $PY -m pytest -q -p no:cacheprovider tests/test_trainer_sparse_gat.py 2>&1 | tai
 for kernel in sparse pyg; do
   for prec in "" "--bf16"; do
     echo "== bench model --gat-kernel $kernel $prec"
-    $PY -c "from cli import app; app()" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu \
+    $PY -c "from cli import main; main()" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu \
         --gat-kernel "$kernel" $prec --batches "${BATCHES:-1,32,128,512}" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH} 2>&1 | tail -6
   done
 done
 echo "== bench model --gat-kernel sparse --bf16 --compile"
-$PY -c "from cli import app; app()" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu \
+$PY -c "from cli import main; main()" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu \
     --gat-kernel sparse --bf16 --compile --batches "${BATCHES:-1,32,128,512}" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH} 2>&1 | tail -6

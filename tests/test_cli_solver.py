@@ -260,3 +260,30 @@ def test_node_order_is_a_convention_not_an_inversion(tmp_path, lv_file):
     meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
     back = read_mesh(path)
     assert len(back.endo) == len(lv.endo)
+
+
+@pytest.mark.parametrize("argv,words", [
+    (["solve", "x.vtu", "--pressure", "abc", "--stiffness", "150", "-o", "y.vtu"], ["--pressure", "valid number"]),
+    (["solve", "x.vtu", "--pressure", "8", "--stiffness", "150", "--fidelity", "ultra", "-o", "y.vtu"],
+     ["--fidelity", "ultra"]),
+    (["unload", "x.vtu", "--pressure", "8", "--stiffness", "150", "--units", "inch", "-o", "y.vtu"], ["--units"]),
+    (["train"], ["--store", "heartctl train --help"]),
+    (["bogus"], ["No such command"]),
+])
+def test_usage_errors_through_the_entry_point_are_one_line_and_exit_2(monkeypatch, capsys, argv, words):
+    """`heartctl` (cli:main): click's framed usage box becomes one line, like every other bad input."""
+    import sys
+
+    from cli import main
+
+    monkeypatch.setattr(sys, "argv", ["heartctl", *argv])
+    with pytest.raises(SystemExit) as exit_:
+        main()
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("heartctl: error:") and err.count("\n") == 1, err
+    assert all(w in err for w in words), err
+    monkeypatch.setattr(sys, "argv", ["heartctl", "--help"])
+    with pytest.raises(SystemExit) as exit_:
+        main()
+    assert exit_.value.code == 0 and "Usage" in capsys.readouterr().out
