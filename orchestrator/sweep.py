@@ -16,6 +16,7 @@ import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -72,12 +73,25 @@ def check_request(spec: SweepSpec, location: str) -> dict | None:
     (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line)."""
     spec.validate()
     attrs = inspect_store(location)
+    _check_writable(location, attrs is not None)
     if attrs is not None:
         conflicts = spec.conflicts(attrs)
         if conflicts:
             raise SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
                                 f"use the store's settings to resume, or a new --store")
     return attrs
+
+
+def _check_writable(location: str, exists: bool) -> None:
+    """ValueError when a local store (or the folder it would be made in) cannot be written, found
+    before Ray starts; object stores are left to their own permissions."""
+    from storage.store import is_url
+
+    if is_url(location):
+        return
+    folder = Path(location).absolute() if exists else Path(location).absolute().parent
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"store {location}: {'it' if exists else f'the folder {folder}'} is not writable")
 
 
 def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) -> dict:

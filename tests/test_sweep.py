@@ -277,3 +277,22 @@ def test_status_and_dry_run_cli(tmp_path, small_store):
     assert plan["cases"] == 2 and plan["to_run"] == 2 and plan["core_hours"] > 0
     assert plan["calibration"]["ok"] and plan["calibration"]["case_bytes"] > 0
     assert not new.exists()  # a dry run writes nothing
+
+
+def test_an_unwritable_store_folder_is_refused_before_ray(tmp_path, monkeypatch):
+    """Found by check_request (before Ray starts), not as a PermissionError traceback mid-run."""
+    import orchestrator.sweep as sweep
+    from cli import app
+
+    asked = []
+
+    def no_write(path, mode):
+        asked.append(Path(path))
+        return False
+
+    monkeypatch.setattr(sweep.os, "access", no_write)
+    with pytest.raises(ValueError, match="not writable"):
+        sweep.check_request(spec(), str(tmp_path / "s.zarr"))
+    assert asked == [tmp_path]
+    res = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--dry-run"] + SMALL)
+    assert res.exit_code == 2 and "not writable" in res.output and not (tmp_path / "s.zarr").exists()
