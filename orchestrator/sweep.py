@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from storage.lock import WriterLock, check_free
 from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, stats_row
 
 from .grid import MAX_CHAIN, SweepSpec, pressure_chains
@@ -75,6 +76,7 @@ def check_request(spec: SweepSpec, location: str) -> dict | None:
     attrs = inspect_store(location)
     _check_writable(location, attrs is not None)
     if attrs is not None:
+        check_free(location)  # another driver is writing it
         conflicts = spec.conflicts(attrs)
         if conflicts:
             raise SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
@@ -176,11 +178,19 @@ def solver_version() -> str:
 # --------------------------------------------------------------------------- the sweep
 
 
-def open_or_create(spec: SweepSpec, location: str) -> PairStore:
+def open_or_create(spec: SweepSpec, location: str) -> tuple[PairStore, WriterLock]:
+    """The store to write (created when new) and its writer lock, taken before the store is opened
+    (opening clears a killed writer's temporary files, which must not be another live driver's)."""
     attrs = check_request(spec, location)
     if attrs is None:
-        return PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()})
-    return PairStore.open(location)
+        store = PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()})
+        return store, WriterLock(location).acquire()
+    lock = WriterLock(location).acquire()
+    try:
+        return PairStore.open(location), lock
+    except BaseException:
+        lock.release()
+        raise
 
 
 def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = None, retry_failed: bool = False,
@@ -198,7 +208,19 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     if not ray.is_initialized():
         raise RuntimeError("run_sweep needs Ray: call init_ray() first")
     t_start = time.perf_counter()
-    store = open_or_create(spec, location)
+    store, lock = open_or_create(spec, location)
+    try:
+        return _run(spec, store, location, max_in_flight, retry_failed, progress, on_event, console, warm_start,
+                    chain_length, t_start)
+    finally:
+        lock.release()
+
+
+def _run(spec: SweepSpec, store: PairStore, location: str, max_in_flight, retry_failed, progress, on_event, console,
+         warm_start, chain_length, t_start) -> SweepReport:
+    """run_sweep's body, with the store open and its writer lock held."""
+    import ray
+
     cpus = float(ray.cluster_resources().get("CPU", 1.0))
     limit = InFlightLimit(max_in_flight, lambda: float(ray.cluster_resources().get("CPU", 0.0)))
     K = store.n_cases

@@ -2,6 +2,8 @@
 table writes, store inspection errors, summary, VTU export. No Ray here."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import zarr
@@ -232,3 +234,37 @@ def test_a_shape_meshed_later_loses_its_mesh_failure(tmp_path, shape0):
     store.write_shape(0, m.nodes, m.tets, m.endo, m.epi, m.base, shape0["coefficients"], shape0["info"])
     store.flush()
     assert summarize(store.location)["mesh_failures"] == {"1": "gmsh: could not recover the boundary"}
+
+
+def test_one_writer_per_store(tmp_path, shape0):
+    """A store written by another live process is refused (one line, before any change); a lock
+    whose process is gone is taken over; releasing removes it."""
+    import json
+    import socket
+    import subprocess
+
+    from orchestrator.sweep import check_request
+    from storage.lock import LOCK_NAME, WriterLock, holder
+
+    store = _new_store(tmp_path, shape0)
+    lock_file = tmp_path / "s.zarr" / LOCK_NAME
+    other = subprocess.Popen(["sleep", "60"])
+    try:
+        lock_file.write_text(json.dumps({"host": socket.gethostname(), "pid": other.pid, "since": "then"}))
+        assert holder(store.location)["pid"] == other.pid
+        with pytest.raises(StoreError, match=f"being written by pid {other.pid}"):
+            check_request(SPEC, store.location)
+        with pytest.raises(StoreError, match="being written"):
+            WriterLock(store.location).acquire()
+        assert json.loads(lock_file.read_text())["pid"] == other.pid  # the live holder's lock is kept
+    finally:
+        other.kill()
+        other.wait()
+    assert holder(store.location) is None  # its process is gone: stale
+    with WriterLock(store.location) as lock:
+        assert lock.held and json.loads(lock_file.read_text())["pid"] == os.getpid()
+        assert WriterLock(store.location).acquire().held  # this process may take its own lock again
+    assert not lock_file.exists()
+    lock_file.write_text(json.dumps({"host": "another-node", "pid": 1, "since": "then"}))
+    with pytest.raises(StoreError, match="on another-node"):  # a process elsewhere cannot be seen: not stale
+        check_request(SPEC, store.location)
