@@ -210,14 +210,14 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     t_start = time.perf_counter()
     store, lock = open_or_create(spec, location)
     try:
-        return _run(spec, store, location, max_in_flight, retry_failed, progress, on_event, console, warm_start,
-                    chain_length, t_start)
+        return _run(spec, store, max_in_flight, retry_failed, progress, on_event, console, warm_start, chain_length,
+                    t_start)
     finally:
         lock.release()
 
 
-def _run(spec: SweepSpec, store: PairStore, location: str, max_in_flight, retry_failed, progress, on_event, console,
-         warm_start, chain_length, t_start) -> SweepReport:
+def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progress, on_event, console, warm_start,
+         chain_length, t_start) -> SweepReport:
     """run_sweep's body, with the store open and its writer lock held."""
     import ray
 
@@ -284,12 +284,12 @@ def _run(spec: SweepSpec, store: PairStore, location: str, max_in_flight, retry_
                     s, chain, submitted_at = inflight.pop(ref)
                     try:
                         results = ray.get(ref)
-                    except ray.exceptions.RayTaskError as exc:  # the task's own code raised
+                    except Exception as exc:
+                        if _lost_to_infrastructure(exc):  # not the cases' fault: left pending for a rerun
+                            report.lost += len(chain)
+                            continue
                         error = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
                         results = [error] * len(chain)
-                    except Exception:  # worker or node lost after max_retries: not the case's fault
-                        report.lost += len(chain)  # left pending; a rerun solves them
-                        continue
                     for k, result in zip(chain, results):
                         t_w = time.perf_counter()
                         status = _record(store, s, k, result, submitted_at, run)
@@ -358,6 +358,16 @@ def _record(store: PairStore, s: int, k: int, result: dict, submitted_at: float,
     status = DONE if reason is None else FAILED
     store.set_case(s, k, status, stats_row(values), result.get("host"), reason)
     return status
+
+
+def _lost_to_infrastructure(exc: BaseException) -> bool:
+    """A task that failed for want of a machine, not for its cases: its worker or node died after
+    Ray's retries, or its process ran out of memory (`run_case` re-raises MemoryError)."""
+    import ray
+
+    if isinstance(exc, ray.exceptions.RayTaskError):
+        return isinstance(getattr(exc, "cause", None), MemoryError)
+    return True
 
 
 def _error_line(exc: BaseException) -> str:

@@ -86,7 +86,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
         except (SolveError, MeshError) as exc:
             reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
         except MemoryError:
-            raise  # the worker's trouble, not the case's: Ray retries the task
+            raise  # the worker's trouble, not the case's: the driver leaves the chain pending
         except Exception as exc:  # e.g. a linear solver's "factor is exactly singular": this case fails, the chain goes on
             line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
             reasons.append(f"{type(exc).__name__}: {line}".strip(" :"))

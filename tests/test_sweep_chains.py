@@ -141,3 +141,17 @@ def test_in_flight_limit_follows_the_cluster_as_nodes_join():
     assert limit.current() == 16 and limit.cpus_seen == 32.0
     fixed = InFlightLimit(3, lambda: 1 / 0)  # --max-in-flight: the cluster is never asked
     assert fixed.current() == 3
+
+
+def test_which_task_failures_leave_their_cases_pending():
+    """A worker or node lost after Ray's retries, or a task out of memory: the cases stay pending
+    for the next run. An error of the task's own code fails them, with its reason."""
+    import ray
+
+    from orchestrator.sweep import _error_line, _lost_to_infrastructure
+
+    assert _lost_to_infrastructure(ray.exceptions.WorkerCrashedError())
+    assert _lost_to_infrastructure(ray.exceptions.RayTaskError("run_chain", "Traceback …", MemoryError()))
+    own = ray.exceptions.RayTaskError("run_chain", "Traceback …", KeyError("params"))
+    assert not _lost_to_infrastructure(own)
+    assert _error_line(own) == "KeyError: 'params'"
