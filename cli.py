@@ -1146,6 +1146,7 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
 
 import numpy as np  # noqa: E402  (after the app so `heartctl --help` stays light)
 
+
 def _usage_exception_types() -> tuple:
     """(usage errors, other click errors, aborts) of click and of the click typer vendors (≥ 0.16)."""
     import importlib
