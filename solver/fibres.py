@@ -35,8 +35,8 @@ def transmural_coordinate(mesh: TetMesh) -> np.ndarray:
 
 def wall_directions(mesh: TetMesh, phi: np.ndarray):
     """Per-tet transmural t, longitudinal e_l and circumferential e_c unit vectors, each [m, 3]."""
-    _, g = tet_geometry(mesh.nodes, mesh.tets)
-    grad = np.einsum("ea,eaI->eI", phi[mesh.tets], g)
+    vol, g = tet_geometry(mesh.nodes, mesh.tets)
+    grad = _fill_flat_gradients(mesh.tets, np.einsum("ea,eaI->eI", phi[mesh.tets], g), np.abs(vol), mesh.n_nodes)
     t = grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
     ez = np.array([0.0, 0.0, 1.0])
     el = ez - np.outer(t @ ez, np.ones(3)) * t
@@ -49,6 +49,22 @@ def wall_directions(mesh: TetMesh, phi: np.ndarray):
     el /= norm[:, None]
     ec = np.cross(el, t)
     return t, el, ec
+
+
+def _fill_flat_gradients(tets: np.ndarray, grad: np.ndarray, vol: np.ndarray, n_nodes: int) -> np.ndarray:
+    """∇φ per tet, where a tet with all four nodes on one surface (φ equal at its nodes: ∇φ = 0, so
+    no transmural direction, e.g. one element across a thin wall) takes the volume-weighted mean
+    gradient of the tets around its nodes."""
+    size = np.linalg.norm(grad, axis=1)
+    flat = size <= 1e-8 * max(float(np.median(size)), 1e-300)
+    if not flat.any():
+        return grad
+    weights = np.where(flat, 0.0, vol)[:, None] * grad  # flat tets give nothing to their nodes
+    at_node = np.zeros((n_nodes, 3))
+    np.add.at(at_node, tets.ravel(), np.repeat(weights, 4, axis=0))
+    grad = grad.copy()
+    grad[flat] = at_node[tets[flat]].mean(axis=1)
+    return grad
 
 
 def fibre_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam: np.ndarray,

@@ -91,6 +91,22 @@ def test_fibre_frames_orthonormal_with_linear_helix(default_mesh):
     np.testing.assert_allclose(np.einsum("eqi,ei->eq", frames[..., 1], t), 1.0, atol=1e-12)
 
 
+def test_a_tet_with_no_transmural_gradient_takes_its_neighbours_direction(default_mesh):
+    """All four nodes of a tet on one surface (φ equal at them: ∇φ = 0, e.g. one element across a
+    thin wall) gave t = 0 and a fibre frame of zero vectors; now its neighbours' direction."""
+    from solver.fibres import wall_directions
+
+    m = default_mesh
+    phi = transmural_coordinate(m)
+    t_ref, _, _ = wall_directions(m, phi)
+    flat = int(np.argmax(np.ptp(phi[m.tets], axis=1) < 1.0))  # any tet; make its φ constant
+    phi[m.tets[flat]] = phi[m.tets[flat]].mean()
+    t, el, ec = wall_directions(m, phi)
+    for v in (t, el, ec):
+        assert np.all(np.isfinite(v)) and np.allclose(np.linalg.norm(v, axis=1), 1.0)
+    assert t[flat] @ t_ref[flat] > 0.9  # close to the direction it had with its own gradient
+
+
 def test_closest_points_on_triangles_match_dense_sampling():
     """Every region of the triangle (interior, three edges, three vertices) against a dense
     barycentric sampling of the triangle."""
