@@ -1,19 +1,21 @@
-"""One writer per store: `heartctl generate` holds a lock file in a local store while it writes.
+"""One writer per store: `heartctl generate` holds a lock on a file in a local store while it writes.
 
 The sweep driver caches each shape's status and statistics and writes them whole, keeps the audit
 trail of runs, and clears temporary files a killed writer left: two drivers on one store would undo
-each other's progress and delete each other's files. The lock is a file created with O_EXCL that
-names the holder (host, pid, start time). A lock whose holder process is gone (same host, pid no
-longer running) is stale and taken over; the holder's own process may take it again. Object stores
-(s3://, gs://) have no such file: there, run one driver per store (README, "On a cluster").
+each other's progress and delete each other's files. The lock is an exclusive `flock` on
+`.heartctl-writer.lock` in the store, whose content names the holder (host, pid, start time). The
+kernel releases it when the holder's process ends, however it ends, so a killed driver leaves no
+stale lock and no two processes can hold it at once. Object stores (s3://, gs://) have no such
+file: there, run one driver per store (README, "On a cluster"). On network file systems flock is
+as reliable as their locking.
 """
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import socket
 import time
-from pathlib import Path
 
 from .store import StoreError, _local_path, is_url
 
@@ -21,23 +23,33 @@ LOCK_NAME = ".heartctl-writer.lock"
 
 
 def holder(location) -> dict | None:
-    """The live writer holding the store's lock ({host, pid, since}), or None (no lock, a stale
-    one, this process's own, or an object store)."""
+    """Who holds the store's writer lock ({host, pid, since}; empty while the holder is still
+    writing its name), or None: nobody, this process, or an object store."""
     if is_url(location):
         return None
-    info = _read(_local_path(location) / LOCK_NAME)
-    if info is None or _stale(info) or _own(info):
+    path = _local_path(location) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
         return None
-    return info
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            info = _read(fd)
+            own = info.get("pid") == os.getpid() and info.get("host") == socket.gethostname()
+            return None if own else info
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
 
 
 def check_free(location) -> None:
-    """StoreError (one line) when another live process writes the store."""
+    """StoreError (one line) when another process writes the store."""
     info = holder(location)
     if info is not None:
-        raise StoreError(f"store {location} is being written by pid {info.get('pid')} on {info.get('host')} "
-                         f"since {info.get('since')}; wait for that run to end or stop it (if it is gone, "
-                         f"delete {_local_path(location) / LOCK_NAME})")
+        raise StoreError(_held_message(location, info))
 
 
 class WriterLock:
@@ -46,35 +58,34 @@ class WriterLock:
     def __init__(self, location):
         self.location = location
         self.path = None if is_url(location) else _local_path(location) / LOCK_NAME
-        self.held = False
+        self._fd = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
 
     def acquire(self) -> "WriterLock":
-        if self.path is None:
+        if self.path is None or self._fd is not None:
             return self
-        for _ in range(3):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                check_free(self.location)  # raises unless the lock is stale or our own
-                try:
-                    self.path.unlink()
-                except FileNotFoundError:
-                    pass
-                continue
-            with os.fdopen(fd, "w") as f:
-                json.dump({"host": socket.gethostname(), "pid": os.getpid(),
-                           "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")}, f)
-            self.held = True
-            return self
-        check_free(self.location)
-        raise StoreError(f"could not take the writer lock {self.path}")
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            info = _read(fd)
+            os.close(fd)
+            raise StoreError(_held_message(self.location, info)) from None
+        os.ftruncate(fd, 0)
+        os.write(fd, json.dumps({"host": socket.gethostname(), "pid": os.getpid(),
+                                 "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode())
+        self._fd = fd
+        return self
 
     def release(self) -> None:
-        if self.held:
-            info = _read(self.path)
-            if info is not None and _own(info):
-                self.path.unlink(missing_ok=True)
-            self.held = False
+        if self._fd is not None:
+            os.ftruncate(self._fd, 0)  # nobody's name in it once free
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = None
 
     def __enter__(self) -> "WriterLock":
         return self.acquire()
@@ -83,31 +94,15 @@ class WriterLock:
         self.release()
 
 
-def _read(path: Path) -> dict | None:
+def _read(fd: int) -> dict:
     try:
-        info = json.loads(path.read_text())
-    except FileNotFoundError:
-        return None
-    except (OSError, ValueError):  # a lock its writer died while writing: no holder to name
-        return {"host": socket.gethostname(), "pid": -1}
-    return info if isinstance(info, dict) else {"host": socket.gethostname(), "pid": -1}
+        info = json.loads(os.pread(fd, 4096, 0).decode() or "{}")
+    except (OSError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
 
 
-def _own(info: dict) -> bool:
-    return info.get("host") == socket.gethostname() and info.get("pid") == os.getpid()
-
-
-def _stale(info: dict) -> bool:
-    """The holder ran on this host and its process is gone (another host's process cannot be seen)."""
-    if info.get("host") != socket.gethostname():
-        return False
-    pid = info.get("pid")
-    if not isinstance(pid, int) or pid <= 0:
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return True
-    except PermissionError:  # alive, another user's
-        return False
-    return False
+def _held_message(location, info: dict) -> str:
+    who = (f"pid {info.get('pid')} on {info.get('host')} since {info.get('since')}" if info.get("pid")
+           else "another process")
+    return f"store {location} is being written by {who}; wait for that run to end or stop it"
