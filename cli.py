@@ -941,7 +941,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
         stored = inspect_store(store)
         spec = resolve_spec(explicit, local=local, stored_attrs=stored)
-        stored = check_request(spec, store)
+        stored = check_request(spec, store, for_writing=not dry_run)
     except (*_store_errors(), MeshError) as exc:
         fail(str(exc))
     if dry_run:

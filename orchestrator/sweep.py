@@ -16,7 +16,6 @@ import sys
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -69,14 +68,17 @@ class SweepReport:
 # --------------------------------------------------------------------------- request checks (no Ray, no writes)
 
 
-def check_request(spec: SweepSpec, location: str) -> dict | None:
+def check_request(spec: SweepSpec, location: str, for_writing: bool = True) -> dict | None:
     """Validate the spec and the store it targets, read-only. Returns the store's attributes
-    (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line)."""
+    (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line).
+    `for_writing` (not for a dry run) also needs a writable store no other driver is writing."""
     spec.validate()
     attrs = inspect_store(location)
-    _check_writable(location, attrs is not None)
-    if attrs is not None:
+    if for_writing:
+        _check_writable(location)
+    if attrs is not None and for_writing:
         check_free(location)  # another driver is writing it
+    if attrs is not None:
         conflicts = spec.conflicts(attrs)
         if conflicts:
             raise SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
@@ -84,16 +86,17 @@ def check_request(spec: SweepSpec, location: str) -> dict | None:
     return attrs
 
 
-def _check_writable(location: str, exists: bool) -> None:
+def _check_writable(location: str) -> None:
     """ValueError when a local store (or the folder it would be made in) cannot be written, found
     before Ray starts; object stores are left to their own permissions."""
-    from storage.store import is_url
+    from storage.store import _local_path, is_url
 
     if is_url(location):
         return
-    folder = Path(location).absolute() if exists else Path(location).absolute().parent
+    path = _local_path(location).absolute()
+    folder = path if path.is_dir() else path.parent
     if not os.access(folder, os.W_OK | os.X_OK):
-        raise ValueError(f"store {location}: {'it' if exists else f'the folder {folder}'} is not writable")
+        raise ValueError(f"store {location}: {'it' if folder == path else f'the folder {folder}'} is not writable")
 
 
 def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) -> dict:

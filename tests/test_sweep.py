@@ -284,6 +284,7 @@ def test_an_unwritable_store_folder_is_refused_before_ray(tmp_path, monkeypatch)
     import orchestrator.sweep as sweep
     from cli import app
 
+    assert sweep.check_request(spec(), "file://" + str(tmp_path / "t.zarr")) is None  # file:// URLs are local paths
     asked = []
 
     def no_write(path, mode):
@@ -294,5 +295,6 @@ def test_an_unwritable_store_folder_is_refused_before_ray(tmp_path, monkeypatch)
     with pytest.raises(ValueError, match="not writable"):
         sweep.check_request(spec(), str(tmp_path / "s.zarr"))
     assert asked == [tmp_path]
-    res = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--dry-run"] + SMALL)
+    sweep.check_request(spec(), "file://" + str(tmp_path / "s.zarr"), for_writing=False)  # a plan writes nothing
+    res = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--local"])
     assert res.exit_code == 2 and "not writable" in res.output and not (tmp_path / "s.zarr").exists()
