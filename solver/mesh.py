@@ -187,21 +187,23 @@ def tag_surfaces(nodes: np.ndarray, tets: np.ndarray, base_tol_mm: float | None 
     return rest[labels == endo_label], rest[labels == epi_label], facets[is_base]
 
 
-TAGGED_BASE_NORMAL_Z = 0.99  # a base triangle's outward normal: within ~8° of +z
-TAGGED_BASE_DROP = 0.01  # base nodes within 1 % of the mesh height of its top
+TAGGED_BASE_MEAN_NORMAL_Z = 0.95  # the tagged base's area-weighted mean outward normal: within ~18° of +z
+TAGGED_BASE_DROP = 0.10  # and every base node within 10 % of the mesh height of its top
 
 
 def _check_surfaces(nodes: np.ndarray, endo: np.ndarray, epi: np.ndarray, base: np.ndarray) -> None:
     """MeshError unless the surfaces fit the solver's conventions (which fix z on the base and take
-    +z as the long axis): the base a flat cut facing +z at the top of the mesh, the endocardium
-    inside the epicardium. Surfaces found by tag_surfaces fit by construction; tags read from a
-    file are checked, since a turned mesh or swapped tags would otherwise solve a different problem."""
+    +z as the long axis): the base a cut facing +z at the top of the mesh, the endocardium inside
+    the epicardium. Surfaces found by tag_surfaces fit by construction; tags read from a file are
+    checked, since a turned mesh or swapped tags would otherwise solve a different problem. A base
+    need not be exactly flat (a network's unloaded output, a segmentation's cut): the bounds only
+    catch a base that faces sideways or down, or sits away from the top."""
     p = nodes[base]
-    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    area_normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).sum(axis=0)
     height = np.ptp(nodes[:, 2])
-    if normal[:, 2].min() < TAGGED_BASE_NORMAL_Z or p[:, :, 2].min() < nodes[:, 2].max() - TAGGED_BASE_DROP * height:
-        raise MeshError("the tagged base is not a flat cut facing +z at the top of the mesh (long axis z, "
+    facing = area_normal[2] / max(np.linalg.norm(area_normal), 1e-300)
+    if facing < TAGGED_BASE_MEAN_NORMAL_Z or p[:, :, 2].min() < nodes[:, 2].max() - TAGGED_BASE_DROP * height:
+        raise MeshError("the tagged base is not a cut facing +z at the top of the mesh (long axis z, "
                         "base at max z, apex at negative z)")
     extent = [np.ptp(nodes[np.unique(f)], axis=0).prod() for f in (endo, epi)]
     if extent[0] >= extent[1]:
