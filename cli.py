@@ -107,7 +107,7 @@ LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve th
 
 @app.command()
 def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-in shape model (≥ 0)."),
-         out: Path = typer.Option(..., "-o", "--out", help="Output mesh file (.vtu, .vtk, .msh, .inp, .mesh, .xml, .mdpa or .avs)."),
+         out: Path = typer.Option(..., "-o", "--out", help="Output mesh file (.vtu or .vtk)."),
          nodes: int = typer.Option(800, "--nodes", help="Target node count (default 600–1000 nodes)."),
          seed: int = typer.Option(0, "--seed", help="Shape-model seed."),
          endo: float = EndoOpt, epi: float = EpiOpt, units: Units = UnitsOpt):

@@ -97,17 +97,18 @@ def write_mesh(path: str | os.PathLike, mesh: TetMesh, nodes_mm: np.ndarray | No
     atomic_write(Path(path), lambda tmp: meshio.write(tmp, out, file_format=_format_of(Path(path))))
 
 
-OUTPUT_SUFFIXES = (".vtu", ".vtk", ".msh", ".inp", ".mesh", ".xml", ".mdpa", ".avs")  # tets and tags read back
+OUTPUT_SUFFIXES = (".vtu", ".vtk")  # keep tets, surface tags, point data (displacement) and cell data (fibres)
 
 
 def check_output_path(path: str | os.PathLike) -> None:
-    """ValueError unless `path` can take a written mesh: a suffix whose format keeps tetrahedra and
-    the surface tags (each round-trips through read_mesh; .stl or .ply would drop the tets), an
-    existing, writable folder, and no directory of that name."""
+    """ValueError unless `path` can take a written mesh: a VTK suffix (the formats that keep all we
+    write: tets, surface tags, the displacement and fibre fields; meshio's .msh, .inp, .xml and
+    .mdpa writers drop the fields, .stl the tets, .avs does not read back), an existing, writable
+    folder, and no directory of that name."""
     path = Path(path)
     if path.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise ValueError(f"output {path}: write a mesh as {', '.join(OUTPUT_SUFFIXES)} "
-                         f"(formats that keep the tetrahedra and surface tags)")
+        raise ValueError(f"output {path}: write the mesh as .vtu or .vtk (the formats that keep the tets, "
+                         f"surface tags and fields; convert it afterwards if you need another)")
     if path.is_dir():
         raise ValueError(f"output {path} is a directory")
     folder = path.parent

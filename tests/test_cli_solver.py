@@ -214,8 +214,9 @@ def test_a_tagged_base_need_not_be_exactly_flat(tmp_path, lv_file):
 
 
 @pytest.mark.parametrize("name,message", [
-    ("out.stl", "keep the tetrahedra"),  # meshio would write the surface triangles only
-    ("out.xyz", "keep the tetrahedra"),  # no format at all: meshio raised a traceback, after the solve
+    ("out.stl", ".vtu or .vtk"),  # meshio would write the surface triangles only
+    ("out.msh", ".vtu or .vtk"),  # meshio's writer would drop the displacement field
+    ("out.xyz", ".vtu or .vtk"),  # no format at all: meshio raised a traceback, after the solve
     ("ro/out.vtu", "not writable"),
 ])
 def test_output_must_hold_tets_in_a_writable_folder(tmp_path, lv_file, monkeypatch, name, message):
@@ -246,15 +247,19 @@ def test_a_refused_write_is_one_line_and_leaves_nothing(tmp_path, lv_file, monke
 
 
 @pytest.mark.parametrize("suffix", OUTPUT_SUFFIXES)
-def test_every_output_format_reads_back_with_its_surfaces(tmp_path, suffix):
+def test_every_output_format_keeps_surfaces_and_fields(tmp_path, suffix):
+    """What `mesh` and `unload` write (fibre cell data, displacement point data, tags, cm) reads back."""
+    out = tmp_path / f"a{suffix}"
+    r = run("mesh", "--shape", 2, "--nodes", 120, "--units", "cm", "-o", out)
+    assert r.exit_code == 0, r.output
     lv = mesh_lv(lv_shape(2), 120)
-    path = tmp_path / f"a{suffix}"
-    write_mesh(path, lv, units="cm")
-    back = read_mesh(path, units="cm")
+    back = read_mesh(out, units="cm")
     np.testing.assert_array_equal(back.tets, lv.tets)
     np.testing.assert_allclose(back.nodes, lv.nodes, rtol=1e-6, atol=1e-6)
     for surface in ("endo", "epi", "base"):
         assert len(getattr(back, surface)) == len(getattr(lv, surface)) > 0
+    m = meshio.read(out)
+    assert {"transmural", "helix_angle_deg"} <= set(m.point_data) and {"fibre", "sheet"} <= set(m.cell_data)
 
 
 def test_shape_model_mesh_written_and_read_back_identically(tmp_path):
