@@ -47,7 +47,10 @@ def available_backends() -> list[str]:
 
 
 class SingularMatrix(ArithmeticError):
-    """The linear solver could not factorise the matrix (singular, or numerically so)."""
+    """The linear solver could not factorise the matrix. SuperLU raises it for an exactly singular
+    matrix; PARDISO (pivot perturbation on, for the saddle-point systems) perturbs tiny pivots and
+    raises it only for its own errors, so callers check the residual where it matters (Newton's
+    convergence test, `solver.lv.linear_response`)."""
 
 
 class SparseSolver:

@@ -95,7 +95,7 @@ def test_pardiso_is_found_without_searching_site_packages():
     assert done.returncode == 0, done.stderr
 
 
-def test_a_singular_matrix_is_a_clear_error_for_both_backends():
+def test_superlu_names_a_singular_matrix():
     from solver.linear import SingularMatrix
 
     singular = sp.csr_matrix(np.array([[1.0, 2.0], [2.0, 4.0]]))
@@ -124,3 +124,20 @@ def test_a_tangent_that_will_not_factorise_fails_the_solve_with_its_reason():
     mesh = mesh_lv(lv_shape(0), 120)
     with pytest.raises(SolveError, match="singular tangent"):
         forward_solve(mesh, CaseParameters(8.0, 150.0, 60.0, -60.0), "fast", linsolve=Refusing("superlu"))
+
+
+def test_linear_response_refuses_an_answer_that_does_not_solve_its_system(monkeypatch):
+    """PARDISO answers a singular system with huge finite numbers (pivot perturbation): the linear
+    response checks its residual instead of trusting them."""
+    from solver.forward import SolveError
+    from solver.lv import linear_response
+    from solver.meshing import mesh_lv
+    from solver.parameters import CaseParameters
+    from solver.shape_model import lv_shape
+
+    mesh = mesh_lv(lv_shape(0), 120)
+    params = CaseParameters(1.0, 150.0, 65.0, -65.0)
+    assert np.all(np.isfinite(linear_response(mesh, params)))
+    monkeypatch.setattr(SparseSolver, "solve", lambda self, A, b: np.full(b.shape, 2.5e12))
+    with pytest.raises(SolveError, match="singular tangent"):
+        linear_response(mesh, params)
