@@ -3,7 +3,7 @@ phase 2 runs the pairs as Ray tasks, one pressure chain per task (bounded in fli
 tasks return arrays and the driver — the store's only writer — validates, writes and marks each case.
 
 Failures: a lost worker or node is retried by Ray (`max_retries`), after which the task's cases stay
-pending for the next run; a solver failure (or any exception a case's solve raises) is retried once
+pending for the next run (failed once that has happened to a case in MAX_LOSSES runs); a solver failure (or any exception a case's solve raises) is retried once
 inside the task with a more robust setting, then recorded as failed with its reason. The
 sweep never stops for one case. Resume: cases already done (or failed, unless retry_failed) are
 never resubmitted.
@@ -288,12 +288,11 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
                     try:
                         results = ray.get(ref)
                     except Exception as exc:
-                        if _lost_to_infrastructure(exc):  # not the cases' fault: left pending for a rerun
-                            report.lost += len(chain)
-                            continue
-                        error = {"ok": False, "reason": f"task error: {_error_line(exc)}", "attempts": 0}
-                        results = [error] * len(chain)
+                        results = _failed_task_results(store, s, chain, exc)
+                        report.lost += sum(r is None for r in results)
                     for k, result in zip(chain, results):
+                        if result is None:  # lost with its worker: pending for the next run
+                            continue
                         t_w = time.perf_counter()
                         status = _record(store, s, k, result, submitted_at, run)
                         report.driver_store_s += time.perf_counter() - t_w
@@ -313,6 +312,7 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
         report.wall_s = time.perf_counter() - t_start
         try:
             store.end_run(run, {"done": report.done, "failed": report.failed, "submitted": report.submitted,
+                                "lost": report.lost,
                                 "wall_s": report.wall_s, "phase1_s": report.phase1_s, "phase2_s": report.phase2_s})
         except Exception:
             pass
@@ -361,6 +361,25 @@ def _record(store: PairStore, s: int, k: int, result: dict, submitted_at: float,
     status = DONE if reason is None else FAILED
     store.set_case(s, k, status, stats_row(values), result.get("host"), reason)
     return status
+
+
+MAX_LOSSES = 3  # a case whose task was lost with its worker this many times (over runs) is failed
+
+
+def _failed_task_results(store: PairStore, s: int, chain: list, exc: BaseException) -> list:
+    """One result per case of a chain whose task raised: its own error fails every case, with the
+    reason; a task lost with its worker or node (or out of memory) leaves each case pending (None)
+    until that has happened MAX_LOSSES times to it, so a case that always kills its worker (a
+    crash in native code, a mesh too large for the nodes) ends as failed instead of looping."""
+    line = _error_line(exc)
+    if not _lost_to_infrastructure(exc):
+        return [{"ok": False, "reason": f"task error: {line}", "attempts": 0}] * len(chain)
+    out = []
+    for k in chain:
+        n = store.note_loss(s, k)
+        out.append(None if n < MAX_LOSSES else
+                   {"ok": False, "reason": f"lost with its worker in {n} runs (last: {line})", "attempts": 0})
+    return out
 
 
 def _lost_to_infrastructure(exc: BaseException) -> bool:

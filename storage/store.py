@@ -193,6 +193,7 @@ class _Table:
     stats: np.ndarray  # [K, S]
     hosts: dict  # str(k) -> host
     failures: dict  # str(k) -> reason
+    losses: dict  # str(k) -> runs whose task for it was lost with its worker or node (case left pending)
     dirty: bool = False
 
 
@@ -327,7 +328,7 @@ class PairStore:
         if shape_id not in self._tables:
             g = self._shapes()[str(shape_id)]
             self._tables[shape_id] = _Table(g["status"][...], g["stats"][...], dict(g.attrs.get("hosts", {})),
-                                            dict(g.attrs.get("failures", {})))
+                                            dict(g.attrs.get("failures", {})), dict(g.attrs.get("losses", {})))
         return self._tables[shape_id]
 
     def status(self, shape_id: int) -> np.ndarray:
@@ -361,6 +362,14 @@ class PairStore:
             t.failures[str(k)] = reason
         t.dirty = True
 
+    def note_loss(self, shape_id: int, k: int) -> int:
+        """Count a task for case k lost with its worker or node (the case stays pending); returns
+        how many times that has happened to it, over all runs."""
+        t = self.table(shape_id)
+        t.losses[str(k)] = int(t.losses.get(str(k), 0)) + 1
+        t.dirty = True
+        return t.losses[str(k)]
+
     def flush(self, min_interval_s: float = 0.0) -> bool:
         """Write changed case tables: stats, then attrs (hosts, reasons), then status."""
         if time.monotonic() - self._last_flush < min_interval_s:
@@ -370,7 +379,7 @@ class PairStore:
                 continue
             h = self._handle(shape_id)
             h["stats"][...] = t.stats
-            h["group"].attrs.update({"hosts": t.hosts, "failures": t.failures})
+            h["group"].attrs.update({"hosts": t.hosts, "failures": t.failures, "losses": t.losses})
             h["status"][...] = t.status
             t.dirty = False
         self._last_flush = time.monotonic()

@@ -122,7 +122,7 @@ def test_an_unexpected_error_fails_its_case_only(mesh, monkeypatch):
     assert [r["ok"] for r in res] == [True, False, True]
     assert res[1]["reason"] == "RuntimeError: Factor is exactly singular" and res[1]["attempts"] == 2
     assert calls == [6.0, 10.0, 10.0, 14.0]
-    with pytest.raises(MemoryError):  # the worker's trouble: raised, so Ray retries the task
+    with pytest.raises(MemoryError):  # the worker's trouble: raised, and the driver leaves the chain pending
         monkeypatch.setattr(solver.lv, "make_pair", lambda *a, **k: (_ for _ in ()).throw(MemoryError()))
         run_case(mesh, CHAIN[0], "fast")
 
@@ -141,6 +141,29 @@ def test_in_flight_limit_follows_the_cluster_as_nodes_join():
     assert limit.current() == 16 and limit.cpus_seen == 32.0
     fixed = InFlightLimit(3, lambda: 1 / 0)  # --max-in-flight: the cluster is never asked
     assert fixed.current() == 3
+
+
+def test_a_case_lost_with_its_worker_is_pending_then_failed_after_three_runs(tmp_path):
+    import ray
+
+    from orchestrator.sweep import MAX_LOSSES, _failed_task_results
+    from storage.store import PairStore
+
+    spec = SweepSpec(shapes=1, pressure_mmhg=(8.0, 12.0), stiffness_pa=(100.0,), helix_endo_deg=(60.0,),
+                     helix_epi_deg=(-60.0,), fidelity="fast", nodes=200)
+    store = PairStore.create(str(tmp_path / "s.zarr"), spec.store_attrs())
+    shape = mesh_shape(0, 0, 200)
+    m = shape["mesh"]
+    store.write_shape(0, m.nodes, m.tets, m.endo, m.epi, m.base, shape["coefficients"], shape["info"])
+    crash = ray.exceptions.WorkerCrashedError()
+    for run in range(1, MAX_LOSSES):
+        assert _failed_task_results(store, 0, [0, 1], crash) == [None, None]  # pending: a rerun solves them
+    results = _failed_task_results(store, 0, [0, 1], crash)
+    assert all(not r["ok"] and f"lost with its worker in {MAX_LOSSES} runs" in r["reason"] for r in results)
+    store.flush()
+    assert PairStore.open(store.location).table(0).losses == {"0": MAX_LOSSES, "1": MAX_LOSSES}  # kept over runs
+    own = ray.exceptions.RayTaskError("run_chain", "Traceback …", KeyError("params"))
+    assert _failed_task_results(store, 0, [1], own)[0]["reason"] == "task error: KeyError: 'params'"
 
 
 def test_which_task_failures_leave_their_cases_pending():
