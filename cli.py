@@ -991,6 +991,13 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
                f"{store}: nothing to run — {report.done_before} done, {report.failed_before} failed of {report.total}")
 
 
+def _run_state(writer: dict | None, object_store: bool) -> str:
+    """How an unfinished run stands: a local store's writer lock tells a running driver from a dead one."""
+    if writer is not None:
+        return f", running: pid {writer.get('pid')} on {writer.get('host')}"
+    return ", running or interrupted" if object_store else ", interrupted"
+
+
 def _print_plan(plan: dict) -> None:
     g = plan["grid"]
     axes = " × ".join(f"{len(g[a])} {n}" for a, n in (("pressure_mmhg", "P"), ("stiffness_pa", "C"),
@@ -1032,7 +1039,7 @@ def _fmt_s(x) -> str:
 def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL."),
            as_json: bool = typer.Option(False, "--json", help='One JSON object: {"done": N, "failed": N, "pending": N, …}.')):
     """Progress of a store: counts by status, failure reasons, throughput, per-phase times, ETA."""
-    from storage.store import StoreError, inspect_store, summarize
+    from storage.store import StoreError, inspect_store, is_url, summarize
 
     try:
         if inspect_store(store) is None:
@@ -1055,7 +1062,7 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     thr = s["throughput_cases_per_s"]
     lr = s["last_run"] or {}
     con.print(f"throughput (run {lr.get('index', '—')}, {lr.get('done_in_run', 0)} done"
-              f"{', finished' if lr.get('ended') else ', running or interrupted'}): "
+              f"{'' if not lr else ', finished' if lr.get('ended') else _run_state(s['writer'], is_url(store))}): "
               + (f"{thr:.3f} cases/s ({thr * 3600:.0f}/h)" if thr else "—")
               + f"; ETA {_fmt_s(s['eta_s'])}"
               + (f"; store {s['store_bytes'] / 1e6:.1f} MB" if s.get("store_bytes") is not None else ""))

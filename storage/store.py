@@ -650,8 +650,15 @@ def summarize(location, storage_options: dict | None = None) -> dict:
         "hosts": hosts,
         "runs": len(runs),
         "last_run": last_run,
+        "writer": _writer(location),  # the driver writing it now ({host, pid, since}), or None
         "store_bytes": store_bytes(location),
     }
+
+
+def _writer(location) -> dict | None:
+    from .lock import holder  # storage.lock builds on this module
+
+    return holder(location)
 
 
 def store_bytes(location) -> int | None:

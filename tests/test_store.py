@@ -255,6 +255,7 @@ def test_one_writer_per_store(tmp_path, shape0):
     try:
         assert other.stdout.readline().strip() == "held"
         assert holder(store.location)["pid"] == other.pid
+        assert summarize(store.location)["writer"]["pid"] == other.pid  # `status` tells running from interrupted
         with pytest.raises(StoreError, match=f"being written by pid {other.pid}"):
             check_request(SPEC, store.location)
         with pytest.raises(StoreError, match="being written"):
@@ -262,7 +263,7 @@ def test_one_writer_per_store(tmp_path, shape0):
     finally:
         other.kill()  # SIGKILL: no clean-up runs in the holder
         other.wait()
-    assert holder(store.location) is None
+    assert holder(store.location) is None and summarize(store.location)["writer"] is None
     with WriterLock(store.location) as lock:
         assert lock.held and json.loads((tmp_path / "s.zarr" / LOCK_NAME).read_text())["pid"] == os.getpid()
         assert holder(store.location) is None  # this process's own lock does not refuse it
