@@ -4,7 +4,7 @@ Layout (one writer: the sweep driver)::
 
     /                       attrs: schema, schema_version, units, grid, fidelity, seed, mesh_nodes,
                                    base, solver_version, stat_names, runs, ...
-    shapes/<id>/            attrs: shape_id, n_nodes, n_tets, n_cases, ready, hosts, failures,
+    shapes/<id>/            attrs: shape_id, n_nodes, n_tets, n_cases, ready, hosts, failures, losses,
                                    info (cavity_volume_ml, mesh quality, meshing host and time)
         ed_reference [n,3]  float64, mm (the ED mesh the pairs were solved on)
         tets [m,4]          int32
