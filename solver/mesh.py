@@ -100,10 +100,6 @@ def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     folded = folded_tets(nodes, tets)
     if folded.size:
         raise MeshError(f"mesh has {folded.size} inverted tets (the mesh folds over them; of {len(tets)})")
-    sizes = np.bincount(_tet_components(tets))
-    if sizes.size > 1:
-        raise MeshError(f"mesh is in {sizes.size} separate pieces (tets sharing no face: the largest has "
-                        f"{sizes.max()} of {len(tets)}); the LV wall must be one piece")
     return np.ascontiguousarray(tets, dtype=np.int64)
 
 
@@ -213,6 +209,10 @@ def _check_surfaces(nodes: np.ndarray, endo: np.ndarray, epi: np.ndarray, base: 
 def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=None, info=None) -> TetMesh:
     """Validate and assemble a TetMesh; surfaces are found when not given."""
     tets = check_geometry(nodes, tets)
+    sizes = np.bincount(_tet_components(tets))  # topology: once per mesh, not per trial geometry
+    if sizes.size > 1:
+        raise MeshError(f"mesh is in {sizes.size} separate pieces (tets sharing no face: the largest has "
+                        f"{sizes.max()} of {len(tets)}); the LV wall must be one piece")
     nodes = np.ascontiguousarray(nodes, dtype=float)
     if endo is None or epi is None or base is None:
         endo, epi, base = tag_surfaces(nodes, tets)
