@@ -176,6 +176,10 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
                                   output_scale="load"),
     # A1ema-wall-d0 with the mesh's linear FE response as node input too
     "A1ema-resp-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0),
+    # A1ema-resp-d0 whose output is scaled by the case's expected displacement size (from P, C, θ),
+    # for loadings beyond the trained grid (a softer wall than any trained one)
+    "A1ema-resp-d0-load": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0,
+                                  output_scale="load"),
     # the GCN baseline (A4) given the same inputs and recipe as A1ema-resp-d0: the fair test of attention
     "A1ema-resp-d0-gcn": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0,
                                  conv="gcn"),
@@ -193,6 +197,7 @@ CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no
                "A1ema-wall-d0 (A1ema-wall, no dropout) | "
                "A1ema-wall-d0-load (A1ema-wall-d0, output scaled by the loading's displacement size) | "
                "A1ema-resp-d0 (A1ema-wall-d0 plus the mesh's linear FE response as node input) | "
+               "A1ema-resp-d0-load (A1ema-resp-d0, output scaled by the loading's displacement size) | "
                "A1ema-resp-d0-gcn (A1ema-resp-d0 with GCN layers) | R5-resp-d0 (R5 with A1ema-resp-d0's inputs) | pca")
 
 
