@@ -166,6 +166,13 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
                f"displacement mean {disp.mean():.3f} / max {disp.max():.3f} mm → {out}")
 
 
+def _given(ctx: typer.Context, name: str) -> bool:
+    """Whether the user named option `name` on the command line (not left at its default). By the
+    source's name: typer vendors its own click, whose ParameterSource is not click.core's."""
+    source = ctx.get_parameter_source(name)
+    return source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP")
+
+
 @app.command()
 def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diastolic mesh."),
            pressure: float = PressureOpt, stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
@@ -194,16 +201,17 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         if rotations < 1 or (rotations > 1 and method is UnloadMethod.fe):
             raise ValueError(f"--rotations must be ≥ 1 and applies to --method gnn|hybrid, got {rotations}")
         run = run or None
+        if method is UnloadMethod.gnn:
+            solver_only = [f"--{n.replace('_', '-')}" for n in ("fidelity", "tol_mm") if _given(ctx, n)]
+            if solver_only:
+                raise ValueError(f"{' and '.join(solver_only)} apply to --method fe|hybrid: --method gnn solves nothing")
         if (run is None) != (method is UnloadMethod.fe):
             raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
         lv = read_mesh(mesh_path, units.value)
     except _input_errors() as exc:
         fail(str(exc))
     if method is not UnloadMethod.fe:
-        from click.core import ParameterSource
-
-        asked = {name: value for name, value in (("base", base.value), ("fibres", fibres))
-                 if ctx.get_parameter_source(name) is not ParameterSource.DEFAULT}
+        asked = {name: value for name, value in (("base", base.value), ("fibres", fibres)) if _given(ctx, name)}
         return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm,
                                     units.value, fibres, asked, rotations)
     try:
@@ -1053,7 +1061,7 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     from rich.console import Console
     from rich.table import Table
 
-    con = Console()
+    con = Console(width=160)
     con.print(f"[bold]{store}[/bold]: {s['shapes']} shapes × {s['cases_per_shape']} cases = {s['total']} "
               f"({s['fidelity']}, seed {s['seed']}, ~{s['mesh_nodes']} nodes; {s['shapes_ready']} shapes meshed)")
     pct = lambda n: f"{100 * n / s['total']:.1f} %" if s["total"] else "—"  # noqa: E731

@@ -165,5 +165,5 @@ def test_imported_cases_keep_their_own_ed_geometry(store):
     bundle_norm = Normalisation(
         (0.0, 0.0, -40.0), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
     g = build_graphs(cases, [key], bundle_norm)[0]
-    np.testing.assert_allclose(g.x.numpy(), bundle_norm.coords(case.loaded), atol=1e-5)
+    np.testing.assert_allclose(g.x.numpy(), bundle_norm.coords(case.loaded, cases.features[key[0]].base_nodes), atol=1e-5)
     np.testing.assert_allclose(g.y.numpy(), (case.unloaded - case.loaded) / 2.0, atol=1e-5)

@@ -324,3 +324,118 @@ def test_ensemble_is_the_mean_of_its_members_and_reports_their_spread(trained, t
     assert json.loads(r.output.strip().splitlines()[-1])["members"] == 2
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", seed1_split0, "--no-ray", "--epochs", 2,
                          "--device", "cpu", "--seed", 1), "split_seed")  # resuming needs the same split seed
+
+
+def _copied_run(trained, tmp_path, name, change) -> "Path":
+    """A copy of the trained run whose checkpoint `change(state)` edits (a damaged or diverged run)."""
+    import shutil
+
+    from trainer.checkpoint import save_checkpoint
+
+    d = tmp_path / name
+    shutil.copytree(trained["run"], d)
+    state = load_run(d)
+    change(state)
+    save_checkpoint(d / "checkpoint.pt", {k: v for k, v in state.items() if k not in ("format", "version")})
+    return d
+
+
+def test_network_unloading_does_not_depend_on_where_the_mesh_lies(trained):
+    """The FE answer is the same wherever the ED mesh lies; the network places every mesh in the
+    training frame (centroid on the long axis, base at z = 0) first, so its answer is the same too."""
+    from solver.parameters import CaseParameters
+    from trainer.predict import unload_with_network
+
+    m = lv_mesh(1)
+    params = CaseParameters(10.0, 150.0, 60.0, -60.0)
+    here = unload_with_network(m, params, trained["run"])["unloaded_nodes"] - m.nodes
+    shift = np.array([25.0, -15.0, 40.0])
+    there = unload_with_network(m.with_nodes(m.nodes + shift), params, trained["run"])["unloaded_nodes"] - m.nodes - shift
+    np.testing.assert_allclose(there, here, atol=2e-5)
+    assert np.abs(here).max() > 0.1
+
+
+def test_a_diverged_or_damaged_checkpoint_is_refused_in_one_line(trained, tmp_path):
+    ed, o = tmp_path / "ed.vtu", tmp_path / "o.vtu"
+    write_mesh(ed, lv_mesh(0))
+
+    def nan_weights(state):
+        for key in ("model", "best_model"):
+            if state.get(key):
+                first = next(iter(state[key]))
+                state[key][first] = torch.full_like(state[key][first], float("nan"))
+
+    diverged = _copied_run(trained, tmp_path, "diverged", nan_weights)
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", diverged,
+                         "-o", o), "not finite", "--lr")
+    assert not o.exists()
+    assert_bad_input(run("evaluate", "--run", diverged, "--store", trained["store"], "--no-plots"), "not finite")
+    damages = {"scale0": lambda s: s["normalisation"].update(scale_mm=0.0),
+               "no_scale": lambda s: s["normalisation"].pop("scale_mm"),
+               "fingerprint": lambda s: s.update(fingerprint=None),
+               "split": lambda s: s.update(split=[1, 2]),
+               "config": lambda s: s.update(train_config="paper"),
+               "history": lambda s: s.update(history=[{"loss": 1.0}])}
+    for name, change in damages.items():
+        bad = _copied_run(trained, tmp_path, name, change)
+        assert_bad_input(run("evaluate", "--run", bad, "--store", trained["store"], "--no-plots"), "damaged")
+        assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", bad,
+                             "-o", o), "damaged")
+        assert not o.exists()
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", ed, "-o", o),
+                     "is a file")
+    for extra in (["--tol-mm", 1e-3], ["--fidelity", "fast"]):
+        assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run",
+                             trained["run"], *extra, "-o", o), extra[0], "--method gnn")
+
+
+def test_only_model_choices_the_user_names_draw_a_warning(trained, tmp_path):
+    """A network trained on a clamped-base store, used without --base: no warning (the user asked for
+    nothing else); with --base sliding: the warning."""
+    clamped = _copied_run(trained, tmp_path, "clamped", lambda s: s["fingerprint"].update(base="clamped"))
+    ed, o = tmp_path / "ed.vtu", tmp_path / "o.vtu"
+    write_mesh(ed, lv_mesh(0))
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", clamped, "-o", o)
+    assert r.exit_code == 0, r.output
+    assert "trained on a store" not in r.output
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", clamped, "--base", "sliding",
+            "-o", o)
+    assert r.exit_code == 0, r.output
+    assert "--base sliding: the network was trained on a store with base clamped" in r.output
+
+
+def test_evaluation_folder_holds_one_evaluation_and_write_errors_are_one_line(trained, tmp_path, monkeypatch):
+    out = tmp_path / "ev"
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out", out)
+    assert r.exit_code == 0, r.output
+    assert (out / "error_histogram.png").is_file() and (out / "training_curves.png").is_file()
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out", out, "--no-plots")
+    assert r.exit_code == 0, r.output
+    assert not list(out.glob("*.png"))  # the earlier evaluation's plots are gone, not left beside this summary
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--no-plots", "--rotations", 2)
+    assert r.exit_code == 0, r.output
+    assert (trained["run"] / "eval_test_rot2" / "summary.json").is_file()
+
+    import trainer.evaluate
+
+    def disk_full(path, rows):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(trainer.evaluate, "write_csv", disk_full)
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out", out, "--no-plots"),
+                     "cannot write the evaluation", "No space left")
+    assert not (out / "summary.json").exists()
+
+
+def test_ensemble_warnings_speak_for_every_member(trained, tmp_path):
+    """An ensemble extrapolates where any member does: each member's training grid is checked."""
+    from solver.parameters import CaseParameters
+    from trainer.predict import unload_with_network
+
+    low = _copied_run(trained, tmp_path, "low_pressures",
+                      lambda s: s["normalisation"].update(param_lo=[4.0, *s["normalisation"]["param_lo"][1:]],
+                                                          param_hi=[6.0, *s["normalisation"]["param_hi"][1:]]))
+    params = CaseParameters(12.0, 100.0, 60.0, -60.0)
+    for order in ([trained["run"], low], [low, trained["run"]]):
+        warnings = unload_with_network(lv_mesh(0), params, order)["warnings"]
+        assert any("pressure 12 is outside the training grid [4, 6]" in w for w in warnings), warnings

@@ -64,7 +64,7 @@ def test_graphs_hold_normalised_coordinates_targets_and_params(store):
     g = b.test[0]
     key = tuple(g.key[0].tolist())
     feat = cases.features[key[0]]
-    np.testing.assert_allclose(g.x.numpy(), b.norm.coords(feat.ed_mm), atol=1e-5)
+    np.testing.assert_allclose(g.x.numpy(), b.norm.coords(feat.ed_mm, feat.base_nodes), atol=1e-5)
     np.testing.assert_allclose(g.y.numpy() * b.norm.disp_scale_mm, cases.unloaded[key] - feat.ed_mm, atol=1e-5)
     assert g.params.shape == (1, 4)
     p = g.params[0].numpy()

@@ -104,8 +104,12 @@ def test_cosine_schedule_sets_each_epochs_rate(store, tmp_path):
 
 def test_checkpoints_load_without_unpickling_objects(tmp_path):
     good = tmp_path / "good.pt"
-    save_checkpoint(good, {"kind": "gnn", "train_config": {}, "normalisation": {}, "fingerprint": {}, "split": {},
-                           "epoch": 1, "model": {"w": torch.ones(2)}})
+    from trainer.config import TrainConfig
+    from trainer.data import Normalisation
+
+    norm = Normalisation((0.0, 0.0, -30.0), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60)).as_dict()
+    save_checkpoint(good, {"kind": "gnn", "train_config": TrainConfig(store="s.zarr").as_dict(), "normalisation": norm,
+                           "fingerprint": {}, "split": {}, "epoch": 1, "model": {"w": torch.ones(2)}})
     assert load_checkpoint(good)["model"]["w"].sum() == 2
     umask = os.umask(0)
     os.umask(umask)

@@ -2,6 +2,7 @@
 torch.save and read back with torch.load(weights_only=True), so no arbitrary object is unpickled."""
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -41,7 +42,41 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     missing = [k for k in REQUIRED if k not in state]
     if missing:
         raise TrainerError(f"checkpoint {path} lacks {', '.join(missing)}")
+    check_contents(state, path)
     return state
+
+
+def check_contents(state: dict, path) -> None:
+    """TrainerError (one line) unless the checkpoint's parts read back as what training wrote: a
+    configuration, a usable normalisation (finite centre, positive scales), a store fingerprint, the
+    split's case keys and the per-epoch history."""
+    from .config import TrainConfig
+    from .data import Normalisation
+
+    def bad(part: str, why: str):
+        return TrainerError(f"checkpoint {path} is damaged: its {part} {why}")
+
+    for part, kind in (("train_config", dict), ("normalisation", dict), ("fingerprint", dict), ("split", dict),
+                       ("kind", str), ("history", list)):
+        if part in state and not isinstance(state[part], kind):
+            raise bad(part, f"is a {type(state[part]).__name__}, not a {kind.__name__}")
+    try:
+        TrainConfig.from_dict(state["train_config"])
+    except Exception as exc:  # KeyError, TypeError, ValueError of a damaged dict
+        raise bad("train_config", f"does not read back ({type(exc).__name__}: {str(exc)[:80]})") from None
+    try:
+        norm = Normalisation.from_dict(state["normalisation"])
+        values = [*norm.centre_mm, norm.scale_mm, norm.disp_scale_mm, *norm.param_lo, *norm.param_hi, *norm.load_coef]
+        usable = len(norm.centre_mm) == 3 and all(map(math.isfinite, values)) and norm.scale_mm > 0 and norm.disp_scale_mm > 0
+    except Exception as exc:
+        raise bad("normalisation", f"does not read back ({type(exc).__name__}: {str(exc)[:80]})") from None
+    if not usable:
+        raise bad("normalisation", "holds a non-finite value or a scale ≤ 0")
+    for name, keys in state["split"].items():
+        if not isinstance(keys, (list, tuple)) or any(not isinstance(k, (list, tuple)) or len(k) != 2 for k in keys):
+            raise bad("split", f"{name!r} is not a list of (shape, case) keys")
+    if any(not isinstance(h, dict) or "epoch" not in h for h in state.get("history", [])):
+        raise bad("history", "has an entry without its epoch")
 
 
 def run_checkpoint_path(run_dir: str | os.PathLike) -> Path:
@@ -51,6 +86,8 @@ def run_checkpoint_path(run_dir: str | os.PathLike) -> Path:
 def load_run(run_dir: str | os.PathLike) -> dict:
     """The checkpoint of a finished or running run directory."""
     run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise TrainerError(f"{run_dir} is a file, not a run directory (the folder given to heartctl train --run-dir)")
     if not run_dir.is_dir():
         raise TrainerError(f"run directory {run_dir} does not exist")
     path = run_checkpoint_path(run_dir)

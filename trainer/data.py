@@ -76,8 +76,18 @@ class Normalisation:
         """A normalised displacement expressed in normalised coordinates (disp_scale / scale)."""
         return self.disp_scale_mm / self.scale_mm
 
-    def coords(self, nodes_mm: np.ndarray) -> np.ndarray:
-        return (np.asarray(nodes_mm, dtype=np.float64) - np.asarray(self.centre_mm)) / self.scale_mm
+    def coords(self, nodes_mm: np.ndarray, base_nodes: np.ndarray | None = None) -> np.ndarray:
+        """Normalised coordinates x̂ = (x − centre) / scale. With `base_nodes` (indices of the mesh's
+        base surface nodes) the mesh is first placed in the training frame, whatever its placement:
+        moved so that its node centroid lies on the training meshes' centre line (x, y = centre_mm)
+        and its base plane (the mean z of its base nodes) at z = 0, the frame every generated mesh is
+        made in (DESIGN.md). The FE answer does not depend on where a mesh lies; placed, neither does
+        the network's. A generated mesh moves by its centroid's distance from that line (< 1 mm)."""
+        x = np.asarray(nodes_mm, dtype=np.float64)
+        centre = np.asarray(self.centre_mm, dtype=np.float64)
+        if base_nodes is not None and len(base_nodes):
+            centre = np.array([*x[:, :2].mean(axis=0), centre[2] + x[np.asarray(base_nodes), 2].mean()])
+        return (x - centre) / self.scale_mm
 
     def params(self, values) -> np.ndarray:
         lo, hi = np.asarray(self.param_lo), np.asarray(self.param_hi)
@@ -188,6 +198,12 @@ class MeshFeatures:
     tau: np.ndarray
     tets: np.ndarray = field(repr=False, default=None)
     mesh: object = field(repr=False, default=None)  # the solver TetMesh (surfaces), for the linear response
+    base_nodes: np.ndarray | None = field(repr=False, default=None)  # base surface nodes: placement (coords)
+
+    @property
+    def coords_placed(self):
+        """ed_mm with its base nodes, for Normalisation.coords (the mesh placed in the training frame)."""
+        return self.ed_mm, self.base_nodes
 
     @cached_property
     def wall(self) -> torch.Tensor:
@@ -211,16 +227,17 @@ def mesh_features(mesh) -> MeshFeatures:
     nodes = np.asarray(mesh.nodes, dtype=np.float64)
     zeta, tau = wall_coordinates(nodes, mesh.endo_nodes(), mesh.epi_nodes())
     return MeshFeatures(nodes, mesh_edges(mesh.tets), torch.from_numpy(node_regions(zeta, tau)), zeta, tau,
-                        np.asarray(mesh.tets), mesh)
+                        np.asarray(mesh.tets), mesh, np.asarray(mesh.base_nodes()))
 
 
 def case_graph(feat: MeshFeatures, params, norm: Normalisation, unloaded_mm: np.ndarray | None = None,
                labelled: bool = True, key=(-1, -1), response: bool = False) -> Data:
-    """One case as a graph: x = normalised ED coordinates [n,3]; y = normalised unloading
+    """One case as a graph: x = normalised ED coordinates [n,3] of the mesh placed in the training
+    frame (Normalisation.coords); y = normalised unloading
     displacement (NaN when the label is withheld or unknown); params [1,4] in [0,1]; wall [n,2] =
     the wall coordinates (ζ, τ), region [n] their base/mid/apex × endo/epi cell; with `response`,
     response [n,3] = the mesh's linear response ũ (MeshFeatures.response)."""
-    x = norm.coords(feat.ed_mm)
+    x = norm.coords(*feat.coords_placed)
     if unloaded_mm is not None and labelled:
         y = (np.asarray(unloaded_mm, dtype=np.float64) - feat.ed_mm) / norm.disp_scale_mm
     else:

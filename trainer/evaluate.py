@@ -2,6 +2,7 @@
 breakdown per parameter value, inference time, PNG plots and a VTU error map."""
 from __future__ import annotations
 
+import tempfile
 import time
 from pathlib import Path
 
@@ -87,18 +88,22 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
     by_param = _by_parameter(rows)
-    default = f"eval_{split}" + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else "")
+    default = (f"eval_{split}" + (f"_rot{pred.rotations}" if pred.rotations > 1 else "")
+               + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else ""))
     out_dir = _output_folder(Path(out_dir) if out_dir else run_dir / default)
-    write_csv(out_dir / "cases.csv", rows)
-    write_csv(out_dir / "by_parameter.csv", by_param)
-    files = ["cases.csv", "by_parameter.csv"]
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
-    files += _error_map_vtu(out_dir, store, keys[median], cases.ed(keys[median]) + disps[median],
-                            errors[median])
-    if plots:
-        files += _plots(out_dir, errors, rows[median], items[median][0], errors[median], state.get("history", []))
-    write_json(out_dir / "summary.json", {**summary, **extras, "aggregate": agg})  # last: marks a complete evaluation
-    files.append("summary.json")
+
+    def write(folder: Path) -> list:
+        write_csv(folder / "cases.csv", rows)
+        write_csv(folder / "by_parameter.csv", by_param)
+        files = ["cases.csv", "by_parameter.csv"]
+        files += _error_map_vtu(folder, store, keys[median], cases.ed(keys[median]) + disps[median], errors[median])
+        if plots:
+            files += _plots(folder, errors, rows[median], items[median][0], errors[median], state.get("history", []))
+        write_json(folder / "summary.json", {**summary, **extras, "aggregate": agg})  # last: marks a complete evaluation
+        return files + ["summary.json"]
+
+    files = _write_artefacts(out_dir, write)
     return {"summary": summary, **extras, "aggregate": agg, "by_parameter": by_param, "rows": rows,
             "out_dir": str(out_dir), "files": files}
 
@@ -128,17 +133,34 @@ def _by_parameter(rows: list) -> list:
     return out
 
 
+# what an evaluation writes; an earlier evaluation's are removed first (summary.json first of all), so
+# the folder never mixes two evaluations and holds a summary only once all of this one's files are in
+ARTEFACTS = ("summary.json", "cases.csv", "by_parameter.csv", "error_map_median_case.vtu", "error_histogram.png",
+             "error_map.png", "training_curves.png")
+
+
 def _output_folder(out_dir: Path) -> Path:
-    """Create the output folder; drop an earlier evaluation's summary.json there, so the folder only
-    holds a summary once this evaluation has written all its files."""
+    """Create the output folder (it must take files: a probe file is written and removed) and clear an
+    earlier evaluation's files from it."""
     if out_dir.exists() and not out_dir.is_dir():
         raise TrainerError(f"--out {out_dir} is a file, not a folder")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "summary.json").unlink(missing_ok=True)
+        with tempfile.NamedTemporaryFile(dir=out_dir, prefix=".heartctl-probe-"):
+            pass
+        for name in ARTEFACTS:
+            (out_dir / name).unlink(missing_ok=True)
     except OSError as exc:
         raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
     return out_dir
+
+
+def _write_artefacts(out_dir: Path, write) -> list:
+    """Run write(out_dir) → [file names]; an OS error (disk full, permissions) is one line."""
+    try:
+        return write(out_dir)
+    except OSError as exc:
+        raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
 
 
 def _error_map_vtu(out_dir: Path, store, key, pred_mm, err) -> list:
@@ -193,13 +215,15 @@ def _plots(out_dir: Path, errors: list, row: dict, feat, err, history: list) -> 
     if history:
         ep = [h["epoch"] for h in history]
         fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
-        a1.semilogy(ep, [h["train_loss"] for h in history], label="train loss")
-        a1.semilogy(ep, [h["train_sup"] for h in history], label="train supervised")
-        val = [h["val_loss"] if h["val_loss"] is not None else np.nan for h in history]
-        a1.semilogy(ep, val, label="validation (supervised)")
+        def series(name: str) -> list:  # an entry without the value (or None: no validation cases) → a gap
+            return [np.nan if h.get(name) is None else float(h[name]) for h in history]
+
+        a1.semilogy(ep, series("train_loss"), label="train loss")
+        a1.semilogy(ep, series("train_sup"), label="train supervised")
+        a1.semilogy(ep, series("val_loss"), label="validation (supervised)")
         a1.set_xlabel("epoch")
         a1.legend()
-        a2.plot(ep, [h["val_md_mm"] if h["val_md_mm"] is not None else np.nan for h in history])
+        a2.plot(ep, series("val_md_mm"))
         a2.set_xlabel("epoch")
         a2.set_ylabel("validation MD (mm)")
         fig.tight_layout()

@@ -70,7 +70,7 @@ class PCABaseline:
         RIDGE_GRID with the lowest validation MD, not `ridge`."""
         shapes = sorted({k[0] for k in keys})
         rs = {s: resampling(features[s]) for s in shapes}
-        desc = {s: (rs[s][0] @ norm.coords(features[s].ed_mm)).ravel() for s in shapes}
+        desc = {s: (rs[s][0] @ norm.coords(*features[s].coords_placed)).ravel() for s in shapes}
         D = np.stack([(rs[k[0]][0] @ displacements[k]).ravel() for k in keys])
         d_mean = D.mean(axis=0)
         _, _, Vt = np.linalg.svd(D - d_mean, full_matrices=False)
@@ -129,7 +129,7 @@ class PCABaseline:
             S, R = resampling(feat)
             if cache_key is not None:
                 self._cache[cache_key] = (S, R)
-        desc = (S @ norm.coords(feat.ed_mm)).ravel()
+        desc = (S @ norm.coords(*feat.coords_placed)).ravel()
         f = (self._features(desc, norm.params(params)) - self.s["feat_mean"]) / self.s["feat_sd"]
         coef = f @ self.s["ridge_w"] + self.s["ridge_b"]
         D = (self.s["disp_mean"] + coef @ self.s["disp_comps"]).reshape(-1, 3)

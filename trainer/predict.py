@@ -39,6 +39,11 @@ class Predictor:
         weights = state.get(which) or state.get("model")
         if weights is None:
             raise TrainerError("checkpoint holds no model weights")
+        if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
+            raise TrainerError("checkpoint is damaged: its model weights are not a dict of tensors")
+        if not all(bool(torch.isfinite(v).all()) for v in weights.values() if v.is_floating_point()):
+            raise TrainerError(f"the {self.cfg.config_name} run's weights are not finite: its training diverged "
+                               f"(train again with a lower --lr)")
         if self.kind == "pca":
             if self.rotations > 1:
                 raise TrainerError("--rotations averages a network; the PCA baseline takes no rotations")
@@ -75,7 +80,7 @@ class Predictor:
     def predict_many(self, items: list, batch_size: int = 32) -> list:
         """items: [(MeshFeatures, params [4], cache key or None)] → [displacement mm [n,3]]."""
         if self.kind == "pca":
-            return [self.pca.predict(f, p, self.norm, key) for f, p, key in items]
+            return _finite([self.pca.predict(f, p, self.norm, key) for f, p, key in items], self.run_label)
         from torch_geometric.data import Batch
 
         out = []
@@ -86,7 +91,7 @@ class Predictor:
             d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
             sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
             out.extend(np.split(d, np.cumsum(sizes)[:-1]))
-        return out
+        return _finite(out, self.run_label)
 
     def graph(self, feat: MeshFeatures, params):
         """One unlabelled case as this network's input graph."""
@@ -137,6 +142,14 @@ class Predictor:
                     self._forward(g)
             self.sync()
         return (time.perf_counter() - t) / (len(items) * repeats) * 1e3
+
+
+def _finite(displacements: list, label: str) -> list:
+    """The predictions, or TrainerError if one is not finite (a network that overflows on this input)."""
+    for d in displacements:
+        if not np.isfinite(d).all():
+            raise TrainerError(f"the network {label} predicts a non-finite displacement for this mesh and loading")
+    return displacements
 
 
 class Ensemble:
@@ -194,29 +207,37 @@ class Ensemble:
         return sum(m.time_ms_per_case(items, batch_size, repeats, warmup) for m in self.members)
 
 
+def _each(pred: Predictor | Ensemble) -> list:
+    """(label, member) per network: an ensemble's warnings are about each member's training."""
+    members = pred.members if isinstance(pred, Ensemble) else [pred]
+    return [(f"member {i + 1} ({m.cfg.config_name}): " if len(members) > 1 else "", m) for i, m in enumerate(members)]
+
+
 def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params) -> list:
     out = []
     names = ("pressure", "stiffness", "endo angle", "epi angle")
-    for name, v, lo, hi in zip(names, params, pred.norm.param_lo, pred.norm.param_hi):
-        if not lo - 1e-9 <= v <= hi + 1e-9:
-            out.append(f"{name} {v:g} is outside the training grid [{lo:g}, {hi:g}]: the network extrapolates")
     r = float(np.sqrt(((feat.ed_mm - feat.ed_mm.mean(axis=0)) ** 2).sum(axis=1).mean()))
-    if not 0.5 <= r / pred.norm.scale_mm <= 2.0:
-        out.append(f"mesh size {r:.1f} mm (RMS radius) is far from the training meshes' {pred.norm.scale_mm:.1f} mm: "
-                   f"check --units")
+    for label, m in _each(pred):
+        for name, v, lo, hi in zip(names, params, m.norm.param_lo, m.norm.param_hi):
+            if not lo - 1e-9 <= v <= hi + 1e-9:
+                out.append(f"{label}{name} {v:g} is outside the training grid [{lo:g}, {hi:g}]: the network extrapolates")
+        if not 0.5 <= r / m.norm.scale_mm <= 2.0:
+            out.append(f"{label}mesh size {r:.1f} mm (RMS radius) is far from the training meshes' "
+                       f"{m.norm.scale_mm:.1f} mm: check --units")
     return out
 
 
 def _model_warnings(pred: Predictor | Ensemble, asked: dict) -> list:
     """Warnings for model choices (`base`, `fibres`) the user asked for that the network was not
     trained with: `--method gnn` can only give the answer of the model its store was generated with."""
-    trained = pred.state.get("fingerprint", {})
     out = []
-    for name, value in asked.items():
-        was = fingerprint_value(trained, name)
-        if was is not None and value != was:
-            out.append(f"--{name} {value}: the network was trained on a store with {name} {was}, and --method gnn "
-                       f"gives that model's answer; use --method hybrid or fe for {name} {value}")
+    for label, m in _each(pred):
+        trained = m.state.get("fingerprint", {})
+        for name, value in asked.items():
+            was = fingerprint_value(trained, name)
+            if was is not None and value != was:
+                out.append(f"{label}--{name} {value}: the network was trained on a store with {name} {was}, and "
+                           f"--method gnn gives that model's answer; use --method hybrid or fe for {name} {value}")
     return out
 
 
