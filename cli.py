@@ -204,7 +204,8 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         if method is UnloadMethod.gnn:
             solver_only = [f"--{n.replace('_', '-')}" for n in ("fidelity", "tol_mm") if _given(ctx, n)]
             if solver_only:
-                raise ValueError(f"{' and '.join(solver_only)} apply to --method fe|hybrid: --method gnn solves nothing")
+                raise ValueError(f"{' and '.join(solver_only)} appl{'y' if len(solver_only) > 1 else 'ies'} to "
+                                 f"--method fe|hybrid: --method gnn solves nothing")
         if (run is None) != (method is UnloadMethod.fe):
             raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
         lv = read_mesh(mesh_path, units.value)

@@ -384,6 +384,17 @@ def test_a_diverged_or_damaged_checkpoint_is_refused_in_one_line(trained, tmp_pa
         assert not o.exists()
     assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", ed, "-o", o),
                      "is a file")
+    # resuming reads more of the checkpoint: a part missing or diverged weights → one line, nothing trained
+    for name, change in (("no_optimizer", lambda s: s.pop("optimizer")), ("nan_resume", nan_weights)):
+        bad = _copied_run(trained, tmp_path, name, change)
+        assert_bad_input(run("train", "--store", trained["store"], "--run-dir", bad, "--no-ray", "--epochs", 2,
+                             "--batch-size", 8, "--device", "cpu"), "optimizer" if name == "no_optimizer" else "not finite")
+        assert load_run(bad)["epoch"] == 1
+    pca = tmp_path / "pca"
+    r = run("train", "--store", trained["store"], "--run-dir", pca, "--no-ray", "--config", "pca", "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    pca_bad = _copied_run({"run": pca}, tmp_path, "pca_bad", lambda s: [s[k].pop("ridge_w") for k in ("model", "best_model")])
+    assert_bad_input(run("evaluate", "--run", pca_bad, "--store", trained["store"], "--no-plots"), "damaged", "ridge_w")
     for extra in (["--tol-mm", 1e-3], ["--fidelity", "fast"]):
         assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run",
                              trained["run"], *extra, "-o", o), extra[0], "--method gnn")
@@ -421,6 +432,13 @@ def test_evaluation_folder_holds_one_evaluation_and_write_errors_are_one_line(tr
     def disk_full(path, rows):
         raise OSError(28, "No space left on device")
 
+    def no_prediction(*args, **kwargs):
+        raise AssertionError("predicted before checking the output folder")
+
+    with monkeypatch.context() as m:  # an unusable --out is refused before any case is predicted
+        m.setattr(trainer.evaluate.Ensemble, "predict_many", no_prediction)
+        assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out",
+                             out / "summary.json" / "sub"), "cannot write the evaluation")
     monkeypatch.setattr(trainer.evaluate, "write_csv", disk_full)
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out", out, "--no-plots"),
                      "cannot write the evaluation", "No space left")

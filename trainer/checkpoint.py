@@ -79,6 +79,29 @@ def check_contents(state: dict, path) -> None:
         raise bad("history", "has an entry without its epoch")
 
 
+RESUME_PARTS = ("model", "optimizer", "scheduler", "best_val", "best_epoch", "bad_epochs", "history")
+
+
+def check_finite_weights(weights: dict, label: str) -> None:
+    """TrainerError unless every floating-point tensor of a state dict is finite."""
+    if not all(bool(torch.isfinite(v).all()) for v in weights.values()
+               if isinstance(v, torch.Tensor) and v.is_floating_point()):
+        raise TrainerError(f"the {label} run's weights are not finite: its training diverged "
+                           f"(train again into a new --run-dir with a lower --lr)")
+
+
+def check_resume_parts(state: dict, path, weight_average: bool) -> None:
+    """TrainerError (one line) unless a network checkpoint holds what resuming reads, with finite weights."""
+    missing = [k for k in RESUME_PARTS + (("weight_average",) if weight_average else ()) if k not in state]
+    if missing:
+        raise TrainerError(f"checkpoint {path} is damaged: it lacks {', '.join(missing)}, which resuming needs")
+    if not isinstance(state["model"], dict):
+        raise TrainerError(f"checkpoint {path} is damaged: its model weights are not a dict of tensors")
+    from .config import TrainConfig
+
+    check_finite_weights(state["model"], TrainConfig.from_dict(state["train_config"]).config_name)
+
+
 def run_checkpoint_path(run_dir: str | os.PathLike) -> Path:
     return Path(run_dir) / CHECKPOINT_NAME
 

@@ -203,6 +203,9 @@ class MeshFeatures:
     @property
     def coords_placed(self):
         """ed_mm with its base nodes, for Normalisation.coords (the mesh placed in the training frame)."""
+        if self.base_nodes is None or not len(self.base_nodes):
+            raise TrainerError("these mesh features carry no base nodes to place the mesh by (build them with "
+                               "mesh_features from a mesh with a tagged base)")
         return self.ed_mm, self.base_nodes
 
     @cached_property

@@ -54,6 +54,9 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     keys = _keys_for(state, split)
     pred = Ensemble([Predictor(state, device, rotations=rotations)]
                     + [_member(Path(d), state, split, keys, device, rotations) for d in members])
+    default = (f"eval_{split}" + (f"_rot{pred.rotations}" if pred.rotations > 1 else "")
+               + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else ""))
+    out_dir = _writable_folder(Path(out_dir) if out_dir else run_dir / default)  # before minutes of predicting
     cases = read_store(store, keys)
     if keys is not None:
         check_fingerprint(state["fingerprint"], store_fingerprint(cases.attrs, cases.features), store)
@@ -88,9 +91,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
     by_param = _by_parameter(rows)
-    default = (f"eval_{split}" + (f"_rot{pred.rotations}" if pred.rotations > 1 else "")
-               + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else ""))
-    out_dir = _output_folder(Path(out_dir) if out_dir else run_dir / default)
+    _clear_earlier_evaluation(out_dir)
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
 
     def write(folder: Path) -> list:
@@ -139,20 +140,26 @@ ARTEFACTS = ("summary.json", "cases.csv", "by_parameter.csv", "error_map_median_
              "error_map.png", "training_curves.png")
 
 
-def _output_folder(out_dir: Path) -> Path:
-    """Create the output folder (it must take files: a probe file is written and removed) and clear an
-    earlier evaluation's files from it."""
+def _writable_folder(out_dir: Path) -> Path:
+    """Create the output folder; it must take files (a probe file is written and removed)."""
     if out_dir.exists() and not out_dir.is_dir():
         raise TrainerError(f"--out {out_dir} is a file, not a folder")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=out_dir, prefix=".heartctl-probe-"):
             pass
+    except OSError as exc:
+        raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
+    return out_dir
+
+
+def _clear_earlier_evaluation(out_dir: Path) -> None:
+    """Remove an earlier evaluation's files (ARTEFACTS), once this one's figures are ready to write."""
+    try:
         for name in ARTEFACTS:
             (out_dir / name).unlink(missing_ok=True)
     except OSError as exc:
         raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
-    return out_dir
 
 
 def _write_artefacts(out_dir: Path, write) -> list:
@@ -173,7 +180,9 @@ def _error_map_vtu(out_dir: Path, store, key, pred_mm, err) -> list:
         write_mesh(out_dir / "error_map_median_case.vtu", mesh, pred_mm,
                    point_data={"error_mm": err, "ed_mm": mesh.nodes}, units="mm")
         return ["error_map_median_case.vtu"]
-    except Exception:  # an optional artefact; the metrics stand without it
+    except OSError:
+        raise  # the folder failed us (disk full, permissions): one line, by _write_artefacts
+    except Exception:  # an optional artefact (e.g. the mesh does not read back); the metrics stand without it
         return []
 
 

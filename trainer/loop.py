@@ -16,7 +16,7 @@ import torch
 from ._malloc import tune_allocator
 from .augment import rotate_batch, scale_batch
 from .averaging import WeightAverage
-from .checkpoint import cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
+from .checkpoint import check_resume_parts, cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
 from .data import DataBundle, check_fingerprint, training_data
 from .files import write_csv, write_json
@@ -177,6 +177,8 @@ def check_same_run(state: dict, cfg: TrainConfig, run_dir: Path) -> None:
 
 def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: Path) -> None:
     check_same_run(state, cfg, run_dir)
+    if cfg.model.kind != "pca":
+        check_resume_parts(state, run_checkpoint_path(run_dir), cfg.model.ema_decay > 0)
     check_fingerprint(state["fingerprint"], bundle.fingerprint, cfg.store)
     if state.get("kind") != ("pca" if cfg.model.kind == "pca" else "gnn"):
         raise TrainerError(f"run directory {run_dir} holds a {state.get('kind')} run; use a new --run-dir")
@@ -229,9 +231,13 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     best_model = None
     stopped = False
     if state is not None:
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
+        try:
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            sched.load_state_dict(state["scheduler"])
+        except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+            raise TrainerError(f"checkpoint in {run_dir} is damaged: cannot resume from it "
+                               f"({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
         start_epoch = int(state["epoch"])
         best_val, best_epoch = float(state["best_val"]), int(state["best_epoch"])
         bad_epochs, history = int(state["bad_epochs"]), list(state["history"])
@@ -249,7 +255,11 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     model.to(dist.device)
     average = WeightAverage(model, cfg.model.ema_decay) if cfg.model.ema_decay > 0 else None
     if average is not None and state is not None:
-        average.load_state_dict(state["weight_average"])
+        try:
+            average.load_state_dict(state["weight_average"])
+        except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+            raise TrainerError(f"checkpoint in {run_dir} is damaged: its weight average does not load "
+                               f"({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
     evaluated = average.model if average is not None else model  # what validation sees and best_model keeps
     uses_teacher = average is not None and cfg.model.cycle and cfg.model.cycle_grad == "teacher"
     if dist.device.type == "cuda":

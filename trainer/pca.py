@@ -50,8 +50,20 @@ def _quadratic(f: np.ndarray) -> np.ndarray:
     return np.concatenate([f, (f[:, :, None] * f[:, None, :])[:, iu[0], iu[1]]], axis=1)
 
 
+FITTED_KEYS = ("disp_mean", "disp_comps", "shape_mean", "shape_comps", "shape_sd", "feat_mean", "feat_sd",
+               "ridge_w", "ridge_b")  # what predict reads
+
+
 class PCABaseline:
     """Fitted state as plain arrays (saved as tensors in the checkpoint)."""
+
+    @classmethod
+    def from_checkpoint(cls, state: dict) -> "PCABaseline":
+        """A fitted baseline from a checkpoint's weights; TrainerError (one line) if parts are missing."""
+        missing = [k for k in FITTED_KEYS if k not in state]
+        if missing:
+            raise TrainerError(f"checkpoint is damaged: the PCA baseline lacks {', '.join(missing)}")
+        return cls(state)
 
     def __init__(self, state: dict):
         self.s = {k: np.asarray(v.cpu().numpy() if isinstance(v, torch.Tensor) else v, dtype=np.float64)

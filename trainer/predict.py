@@ -11,7 +11,7 @@ import torch
 
 from ._malloc import tune_allocator
 from .augment import rotate_xy
-from .checkpoint import load_run
+from .checkpoint import check_finite_weights, load_run
 from .config import TrainConfig, TrainerError
 from .data import MeshFeatures, Normalisation, case_graph, fingerprint_value, mesh_features
 
@@ -41,15 +41,13 @@ class Predictor:
             raise TrainerError("checkpoint holds no model weights")
         if not isinstance(weights, dict) or not all(isinstance(v, torch.Tensor) for v in weights.values()):
             raise TrainerError("checkpoint is damaged: its model weights are not a dict of tensors")
-        if not all(bool(torch.isfinite(v).all()) for v in weights.values() if v.is_floating_point()):
-            raise TrainerError(f"the {self.cfg.config_name} run's weights are not finite: its training diverged "
-                               f"(train again with a lower --lr)")
+        check_finite_weights(weights, self.cfg.config_name)
         if self.kind == "pca":
             if self.rotations > 1:
                 raise TrainerError("--rotations averages a network; the PCA baseline takes no rotations")
             from .pca import PCABaseline
 
-            self.pca = PCABaseline(weights)
+            self.pca = PCABaseline.from_checkpoint(weights)
             self.model = None
         elif self.kind == "gnn":
             from .model import build_model

@@ -9,7 +9,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from .checkpoint import CHECKPOINT_NAME, load_checkpoint, run_checkpoint_path, save_checkpoint
+from .checkpoint import CHECKPOINT_NAME, check_resume_parts, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
 from .loop import Dist, fit, pick_resume_state, write_metrics_csv
 
@@ -112,8 +112,10 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     run_dir.mkdir(parents=True, exist_ok=True)
     local = run_checkpoint_path(run_dir)
     driver_state = ray.put(local.read_bytes()) if local.is_file() else None
-    if local.is_file():
-        load_checkpoint(local)  # a damaged file is an input error, before any worker starts
+    if local.is_file():  # a damaged file is an input error, before any worker starts
+        saved = load_checkpoint(local)
+        if saved.get("kind") == "gnn":
+            check_resume_parts(saved, local, TrainConfig.from_dict(saved["train_config"]).model.ema_decay > 0)
     use_gpu = gpus > 0
     scaling = ScalingConfig(num_workers=gpus if use_gpu else cpu_workers, use_gpu=use_gpu,
                             resources_per_worker=None if use_gpu else {"CPU": threads_per_worker})
