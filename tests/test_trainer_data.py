@@ -76,8 +76,10 @@ def test_graphs_hold_normalised_coordinates_targets_and_params(store):
 def test_normalisation_uses_the_training_split_only(store):
     b = build_training_data(store, "shape", seed=0)
     c = b.cases
-    train_ed = [c.features[k[0]].ed_mm for k in b.split["train"]]
-    every_ed = [c.features[k[0]].ed_mm for k in c.keys]
+    from trainer.data import placed_nodes
+
+    train_ed = [placed_nodes(c.features[k[0]].ed_mm, c.features[k[0]].base_nodes) for k in b.split["train"]]
+    every_ed = [placed_nodes(c.features[k[0]].ed_mm, c.features[k[0]].base_nodes) for k in c.keys]
     train_disp = [c.unloaded[k] - c.features[k[0]].ed_mm for k in b.split["train"]]
     expected = Normalisation.fit(train_ed, train_disp, c.attrs["grid"])
     np.testing.assert_allclose(b.norm.centre_mm, expected.centre_mm, rtol=0, atol=1e-12)
@@ -162,3 +164,21 @@ def test_train_fraction_keeps_whole_nested_training_shapes(store):
         with pytest.raises(TrainerError, match="train-fraction"):
             TrainConfig(store="s", train_fraction=bad)
     assert TrainConfig(store="s").identity() != TrainConfig(store="s", train_fraction=0.5).identity()
+
+
+def test_normalisation_is_fitted_and_applied_in_the_training_frame(store):
+    """Meshes lying anywhere: the fitted scale is that of the placed meshes, and a moved mesh gets the
+    same network input as where it lay."""
+    from trainer.data import Normalisation, placed_nodes
+
+    b = build_training_data(store, "shape", seed=0)
+    key = b.split["train"][0]
+    feat = b.cases.features[key[0]]
+    shift = np.array([40.0, -25.0, 12.0])
+    np.testing.assert_allclose(b.norm.coords(feat.ed_mm + shift, feat.base_nodes),
+                               b.norm.coords(feat.ed_mm, feat.base_nodes), atol=1e-12)
+    placed = placed_nodes(feat.ed_mm + shift, feat.base_nodes)
+    assert abs(placed[:, :2].mean(axis=0)).max() < 1e-9 and abs(placed[feat.base_nodes, 2].mean()) < 1e-9
+    here = Normalisation.fit([placed_nodes(feat.ed_mm, feat.base_nodes)], [], b.cases.attrs["grid"])
+    scattered = [placed_nodes(feat.ed_mm + k * shift, feat.base_nodes) for k in range(3)]
+    assert Normalisation.fit(scattered, [], b.cases.attrs["grid"]).scale_mm == pytest.approx(here.scale_mm, rel=1e-9)

@@ -51,6 +51,13 @@ def fit_load_scale(p_hat: np.ndarray, box, rms_mm: np.ndarray, disp_scale_mm: fl
     return tuple(float(v) for v in coef)
 
 
+def placed_nodes(nodes_mm: np.ndarray, base_nodes: np.ndarray) -> np.ndarray:
+    """A mesh's nodes (mm) moved so that their centroid lies on the z axis and the base plane (mean z
+    of the base nodes) at z = 0: the frame the generator makes meshes in, whatever the input's placement."""
+    x = np.asarray(nodes_mm, dtype=np.float64)
+    return x - np.array([*x[:, :2].mean(axis=0), x[np.asarray(base_nodes), 2].mean()])
+
+
 @dataclass(frozen=True)
 class Normalisation:
     """x̂ = (x − centre) / scale for coordinates (mm); ŷ = (X − x) / disp_scale for the unloading
@@ -78,16 +85,15 @@ class Normalisation:
 
     def coords(self, nodes_mm: np.ndarray, base_nodes: np.ndarray | None = None) -> np.ndarray:
         """Normalised coordinates x̂ = (x − centre) / scale. With `base_nodes` (indices of the mesh's
-        base surface nodes) the mesh is first placed in the training frame, whatever its placement:
-        moved so that its node centroid lies on the training meshes' centre line (x, y = centre_mm)
-        and its base plane (the mean z of its base nodes) at z = 0, the frame every generated mesh is
-        made in (DESIGN.md). The FE answer does not depend on where a mesh lies; placed, neither does
-        the network's. A generated mesh moves by its centroid's distance from that line (< 1 mm)."""
-        x = np.asarray(nodes_mm, dtype=np.float64)
+        base surface nodes) the mesh is first placed in the training frame, whatever its placement
+        (placed_nodes: node centroid on the z axis, base plane at z = 0, the frame every generated
+        mesh is made in, DESIGN.md), and x̂ = (placed − (0, 0, centre_z)) / scale. The FE answer does
+        not depend on where a mesh lies; placed, neither does the network's. A generated mesh moves by
+        its centroid's distance from the axis (< 1 mm)."""
         centre = np.asarray(self.centre_mm, dtype=np.float64)
         if base_nodes is not None and len(base_nodes):
-            centre = np.array([*x[:, :2].mean(axis=0), centre[2] + x[np.asarray(base_nodes), 2].mean()])
-        return (x - centre) / self.scale_mm
+            return (placed_nodes(nodes_mm, base_nodes) - np.array([0.0, 0.0, centre[2]])) / self.scale_mm
+        return (np.asarray(nodes_mm, dtype=np.float64) - centre) / self.scale_mm
 
     def params(self, values) -> np.ndarray:
         lo, hi = np.asarray(self.param_lo), np.asarray(self.param_hi)
@@ -106,7 +112,8 @@ class Normalisation:
 
     @classmethod
     def fit(cls, ed_nodes: list, displacements: list, grid: dict, params: list | None = None) -> "Normalisation":
-        """ed_nodes: the ED node arrays of the training cases; displacements: unloaded − ED of the
+        """ed_nodes: the ED node arrays of the training cases (placed_nodes: the frame coords works in,
+        so that meshes lying anywhere do not inflate the scale); displacements: unloaded − ED of the
         labelled training cases (mm); grid: the store's parameter axes; params: the labelled cases'
         parameters [4] (in `displacements` order), to fit load_coef (None: not fitted)."""
         allx = np.concatenate([np.asarray(x, dtype=np.float64) for x in ed_nodes])
@@ -401,7 +408,7 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
     parts = make_split(cases.keys, cases.params, split, seed, cases.attrs)
     parts["train"] = subsample_shapes(parts["train"], train_fraction, seed)
     labelled = supervised_subset(parts["train"], sr, seed if label_seed is None else label_seed)
-    train_ed = [cases.ed(k) for k in parts["train"]]
+    train_ed = [placed_nodes(cases.ed(k), cases.features[k[0]].base_nodes) for k in parts["train"]]
     train_lab = [k for k in parts["train"] if k in labelled]
     norm = Normalisation.fit(train_ed, [cases.displacement(k) for k in train_lab], cases.attrs["grid"],
                              [cases.params[k] for k in train_lab])
