@@ -91,10 +91,11 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
     by_param = _by_parameter(rows)
-    _clear_earlier_evaluation(out_dir)
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
 
     def write(folder: Path) -> list:
+        for name in ARTEFACTS:  # an earlier evaluation's files go first, its summary.json before the rest
+            (folder / name).unlink(missing_ok=True)
         write_csv(folder / "cases.csv", rows)
         write_csv(folder / "by_parameter.csv", by_param)
         files = ["cases.csv", "by_parameter.csv"]
@@ -151,15 +152,6 @@ def _writable_folder(out_dir: Path) -> Path:
     except OSError as exc:
         raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
     return out_dir
-
-
-def _clear_earlier_evaluation(out_dir: Path) -> None:
-    """Remove an earlier evaluation's files (ARTEFACTS), once this one's figures are ready to write."""
-    try:
-        for name in ARTEFACTS:
-            (out_dir / name).unlink(missing_ok=True)
-    except OSError as exc:
-        raise TrainerError(f"cannot write the evaluation to {out_dir}: {exc.strerror or exc}") from None
 
 
 def _write_artefacts(out_dir: Path, write) -> list:
