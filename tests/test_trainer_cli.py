@@ -132,7 +132,9 @@ def test_bad_checkpoint_and_run_dirs(trained, tmp_path):
 
 def test_mismatched_store(trained):
     other = make_tiny_store(trained["root"] / "other_seed.zarr", shapes=4, seed=1)
-    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", other), "does not match", "seed")
+    out = trained["root"] / "ev_other"
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", other, "--out", out), "does not match", "seed")
+    assert not out.exists()  # refused before any output folder is made
     grid = make_tiny_store(trained["root"] / "other_grid.zarr", shapes=4, pressures=(6.0, 10.0))
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", grid), "does not match", "grid")
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["root"] / "none.zarr"), "no heartctl store")

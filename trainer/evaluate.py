@@ -56,7 +56,6 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
                     + [_member(Path(d), state, split, keys, device, rotations) for d in members])
     default = (f"eval_{split}" + (f"_rot{pred.rotations}" if pred.rotations > 1 else "")
                + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else ""))
-    out_dir = _writable_folder(Path(out_dir) if out_dir else run_dir / default)  # before minutes of predicting
     cases = read_store(store, keys)
     if keys is not None:
         check_fingerprint(state["fingerprint"], store_fingerprint(cases.attrs, cases.features), store)
@@ -68,6 +67,9 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
         keys = cases.keys
         if not keys:
             raise TrainerError(f"store {store} has no done cases")
+    # the folder is made once store and run are known to match (no empty folder after a refusal), and
+    # checked before the minutes of predicting
+    out_dir = _writable_folder(Path(out_dir) if out_dir else run_dir / default)
     items = [(cases.case_features(k), cases.params[k], k[0]) for k in keys]
     disps = pred.predict_many(items, batch_size)
     single_ms = pred.time_ms_per_case(items[:timing_cases], 1)
