@@ -554,11 +554,11 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             if address:
                 ray.init(address=address)
             elif not ray.is_initialized():
-                from orchestrator.sweep import WORKER_NICENESS
+                from orchestrator.sweep import WORKER_NICENESS, start_local_ray
 
-                ray.init(num_cpus=workers if local else None, include_dashboard=False,
-                         runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK},
-                         _system_config={"worker_niceness": WORKER_NICENESS})
+                start_local_ray(num_cpus=workers if local else None, include_dashboard=False,
+                                runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK},
+                                _system_config={"worker_niceness": WORKER_NICENESS})
             if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
                 raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
         except (ConnectionError, RuntimeError, TrainerError) as exc:

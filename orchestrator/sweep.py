@@ -125,6 +125,29 @@ def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) 
 # --------------------------------------------------------------------------- Ray
 
 
+# Ray (2.60 here) turns token authentication on for every cluster that ray.init() starts and says so
+# in a warning each time. That is the setting we want (a local cluster is not open to the network), so the
+# notice is dropped; Ray's warning that authentication is *disabled* (RAY_AUTH_MODE=disabled) still shows.
+RAY_AUTH_LOGGER = "ray._private.authentication.authentication_token_setup"
+RAY_AUTH_ENABLED_NOTICE = "Token authentication is enabled for this Ray cluster"
+
+
+def not_auth_enabled_notice(record) -> bool:
+    return not str(record.msg).startswith(RAY_AUTH_ENABLED_NOTICE)
+
+
+def start_local_ray(**kwargs):
+    """ray.init() of a new local cluster (token authentication on, as Ray defaults), without its notice."""
+    import logging
+
+    import ray
+
+    logger = logging.getLogger(RAY_AUTH_LOGGER)
+    if not_auth_enabled_notice not in logger.filters:
+        logger.addFilter(not_auth_enabled_notice)
+    return ray.init(**kwargs)
+
+
 def init_ray(address: str | None = None, num_cpus: int | None = None, local: bool = False, quiet: bool = True):
     """Start (or join, with `address`) Ray. A local Ray's dashboard listens on 127.0.0.1 only;
     in --local mode there is no dashboard at all. Worker BLAS/MKL run single-threaded. A local Ray's
@@ -141,8 +164,8 @@ def init_ray(address: str | None = None, num_cpus: int | None = None, local: boo
         return ray.init(address=address, **kwargs)
     kwargs["_system_config"] = {"worker_niceness": WORKER_NICENESS}
     if local:
-        return ray.init(num_cpus=num_cpus or 2, include_dashboard=False, **kwargs)
-    return ray.init(num_cpus=num_cpus, dashboard_host="127.0.0.1", **kwargs)
+        return start_local_ray(num_cpus=num_cpus or 2, include_dashboard=False, **kwargs)
+    return start_local_ray(num_cpus=num_cpus, dashboard_host="127.0.0.1", **kwargs)
 
 
 def _remotes():

@@ -330,3 +330,52 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
     finally:
         for lg, filters in zip(loggers, before):
             lg.filters = filters
+
+
+def _captured(logger_name: str, emit) -> list[str]:
+    import logging
+
+    records = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())
+    logger = logging.getLogger(logger_name)
+    logger.addHandler(handler)
+    try:
+        emit()
+    finally:
+        logger.removeHandler(handler)
+    return records
+
+
+def test_ray_notices_are_dropped_and_warnings_kept():
+    """A local Ray's 'token authentication is enabled' notice (Ray's own function, emitting through Ray's
+    own logger) is dropped, its warning that authentication is disabled is not; Ray Train's per-report
+    INFO line in a worker is dropped, a warning on the same logger is not."""
+    import logging
+
+    from ray._private.authentication import authentication_token_setup as auth
+    from ray.train.v2._internal.execution import storage
+
+    from orchestrator.sweep import RAY_AUTH_LOGGER, not_auth_enabled_notice
+    from trainer.ray_train import RAY_REPORT_LOGGERS, quieten_checkpoint_reports
+
+    assert auth.logger.name == RAY_AUTH_LOGGER and storage.logger.name in RAY_REPORT_LOGGERS
+    auth_logger, report_logger = logging.getLogger(RAY_AUTH_LOGGER), storage.logger
+    before = list(auth_logger.filters), list(report_logger.filters)
+    try:
+        auth_logger.addFilter(not_auth_enabled_notice)
+        assert _captured(RAY_AUTH_LOGGER, auth._warn_token_auth_enabled) == []
+        assert "disabled" in " ".join(_captured(RAY_AUTH_LOGGER, auth._warn_token_auth_disabled))
+        quieten_checkpoint_reports()
+        quieten_checkpoint_reports()  # idempotent
+        assert len(report_logger.filters) == len(before[1]) + 1
+        level = report_logger.level
+        report_logger.setLevel(logging.INFO)
+        try:
+            got = _captured(storage.logger.name, lambda: (storage.logger.info("Checkpoint successfully created at: x"),
+                                                          storage.logger.warning("upload failed")))
+        finally:
+            report_logger.setLevel(level)
+        assert got == ["upload failed"]
+    finally:
+        auth_logger.filters, report_logger.filters = before

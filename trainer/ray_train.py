@@ -37,6 +37,30 @@ def quieten_local_ray() -> None:
             logger.addFilter(errors_only)
 
 
+# The INFO lines of every ray.train.report in a worker ("Checkpoint successfully created at: …" once an
+# epoch): the run's own log line says the epoch, and the run directory holds the checkpoints.
+# Ray Train v2 names one of the two loggers after its module, the other (context.py) after its file path.
+RAY_REPORT_LOGGERS = ("ray.train.v2._internal.execution.storage",)
+
+
+def warnings_and_up(record: logging.LogRecord) -> bool:
+    return record.levelno >= logging.WARNING
+
+
+def quieten_checkpoint_reports() -> None:
+    names = list(RAY_REPORT_LOGGERS)
+    try:
+        from ray.train.v2._internal.execution import context as _ray_ctx
+
+        names.append(_ray_ctx.__file__)
+    except ImportError:
+        pass
+    for name in names:
+        logger = logging.getLogger(name)
+        if warnings_and_up not in logger.filters:
+            logger.addFilter(warnings_and_up)
+
+
 def _train_worker(config: dict) -> None:
     """Runs in every Ray Train worker."""
     import ray
@@ -78,12 +102,7 @@ def _train_worker(config: dict) -> None:
         sys.__stdout__.write(line + "\n")
         sys.__stdout__.flush()
 
-    try:  # no INFO line per ray.train.report (Ray Train v2 names that logger after its file)
-        from ray.train.v2._internal.execution import context as _ray_ctx
-
-        logging.getLogger(_ray_ctx.__file__).setLevel(logging.WARNING)
-    except Exception:
-        pass
+    quieten_checkpoint_reports()
 
     dist = Dist(rank=rank, world=world, device=device, wrap_model=ray.train.torch.prepare_model, restore=restore,
                 report=report, log=log, write_local=same_host)
