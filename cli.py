@@ -166,6 +166,22 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
                f"displacement mean {disp.mean():.3f} / max {disp.max():.3f} mm → {out}")
 
 
+def _finite_or_none(value):
+    """JSON has no NaN or Infinity: a non-finite number becomes null (nested dicts and lists too)."""
+    if isinstance(value, float):
+        return value if value == value and abs(value) != float("inf") else None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def json_line(value) -> str:
+    """One line of strict JSON (non-finite numbers as null; other objects by their str)."""
+    return json.dumps(_finite_or_none(value), default=str, allow_nan=False)
+
+
 def _given(ctx: typer.Context, name: str) -> bool:
     """Whether the user named option `name` on the command line (not left at its default). By the
     source's name: typer vendors its own click, whose ParameterSource is not click.core's."""
@@ -239,7 +255,7 @@ def verify(problem: Problem = typer.Option(Problem.all, "--problem", help="Land 
     for name in names:
         result = (land1 if name == "land1" else land2)(fidelity.value)
         if as_json:
-            typer.echo(json.dumps(result))
+            typer.echo(json_line(result))
         elif name == "land1":
             typer.echo(f"land1 ({fidelity.value}, {result['nodes']} nodes, {result['dofs']} dofs, {result['wall_s']:.1f} s): "
                        f"deflection z {result['deflection_z_mm']:.3f} mm vs reference {result['reference_mm']:.3f} mm "
@@ -271,7 +287,7 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
         fail(str(exc))
     if as_json:
         for row in rows:
-            typer.echo(json.dumps(row))
+            typer.echo(json_line(row))
         return
     from rich.console import Console
     from rich.table import Table
@@ -302,7 +318,7 @@ def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fi
         fail(str(exc))
     for r in rows:
         if as_json:
-            typer.echo(json.dumps(r))
+            typer.echo(json_line(r))
         elif r["ok"]:
             typer.echo(f"shape {r['shape']:>2} P={r['pressure_mmhg']:>4g} C={r['stiffness_pa']:>3g} θ=±{r['helix_deg']:g}: "
                        f"round trip {r['roundtrip_mm']:.1e} mm, {r['newton']} Newton, min J {r['min_jacobian']:.3f}, {r['wall_s']:.1f} s")
@@ -358,7 +374,7 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
     except (StoreError, ValueError) as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json.dumps({k: v for k, v in result.items() if k != "rows"}))
+        typer.echo(json_line({k: v for k, v in result.items() if k != "rows"}))
         return
     o = result["overall"]
     typer.echo(f"{result['solved']}/{result['cases']} pairs solved ({fidelity.value}, base {base.value}, "
@@ -493,8 +509,9 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             raise TrainerError("--local runs two CPU workers on a local Ray; it takes no --gpus or --address")
         if no_ray and (local or address or gpus):
             raise TrainerError("--no-ray trains in this process; drop --local, --address and --gpus (use --device)")
-        if gpus < 0 or workers < 1 or max_failures < 0 or patience < 1 or not lr > 0:
-            raise TrainerError("--gpus ≥ 0, --workers ≥ 1, --max-failures ≥ 0, --patience ≥ 1 and --lr > 0 are required")
+        if gpus < 0 or workers < 1 or max_failures < 0 or patience < 1 or not 0 < lr < float("inf"):
+            raise TrainerError("--gpus ≥ 0, --workers ≥ 1, --max-failures ≥ 0, --patience ≥ 1 and a finite --lr > 0 "
+                               "are required")
         if device not in (None, "cpu", "cuda"):
             raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
         parse_split(split)
@@ -561,6 +578,10 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                 _system_config={"worker_niceness": WORKER_NICENESS})
             if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
                 raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
+            cpus = ray.cluster_resources().get("CPU", 0)
+            if not gpus and not address and cpus < workers:  # Ray Train would wait for them for ever
+                raise TrainerError(f"--workers {workers}: the local Ray has {cpus:g} CPUs; use --workers {int(cpus)} "
+                                   f"or fewer (one CPU each), or join a larger cluster with --address")
         except (ConnectionError, RuntimeError, TrainerError) as exc:
             ray.shutdown()
             fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0]}")
@@ -582,11 +603,13 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         ray.shutdown()
         summary["mode"] = f"Ray Train, {summary['workers']} {'GPU' if gpus else 'CPU'} worker(s), {summary['backend']}"
     if as_json:
-        typer.echo(json.dumps(summary, default=str))
+        typer.echo(json_line(summary))
         return
     best = summary.get("best_val_md_mm")
-    typer.echo(f"{config}: {summary['epoch']} epochs ({summary['mode']}); best validation "
-               + (f"MD {best:.3f} mm at epoch {summary['best_epoch']}" if best is not None else "—")
+    typer.echo(f"{config}: {summary['epoch']} epochs ({summary['mode']}); "
+               + (f"best validation MD {best:.3f} mm at epoch {summary['best_epoch']}" if best is not None
+                  else "no validation cases" + (f", kept epoch {summary['best_epoch']} (lowest training loss)"
+                                                if model.kind != "pca" else ""))
                + (", stopped early" if summary.get("stopped_early") else "")
                + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir}/checkpoint.pt")
 
@@ -618,7 +641,7 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json.dumps({**report["summary"], "nn_md_mm": report["nn_md_mm"],
+        typer.echo(json_line({**report["summary"], "nn_md_mm": report["nn_md_mm"],
                                "ms_per_case_batched": report["ms_per_case_batched"],
                                "response_ms_per_mesh": report["response_ms_per_mesh"], "split": split,
                                "config": report["config"], "rotations": report["rotations"],
@@ -689,7 +712,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json.dumps(r))
+        typer.echo(json_line(r))
         return
     typer.echo(f"{r['config']} model, {r['parameters']:,} parameters; mesh {r['nodes']} nodes, {r['edges']} directed edges; "
                f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, "
@@ -753,7 +776,7 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json.dumps(result))
+        typer.echo(json_line(result))
         return
     if seed_list:
         _print_ablation_seeds(result, root)
@@ -855,7 +878,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json.dumps(result))
+        typer.echo(json_line(result))
         return
     _print_learning_curve(result, root)
 
@@ -959,7 +982,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         cores = num_cpus or (2 if local else cluster_cores())
         plan = make_plan(spec, store, stored, cores=cores, warm_start=warm_start)
         if as_json:
-            typer.echo(json.dumps(plan, default=str))
+            typer.echo(json_line(plan))
             return
         _print_plan(plan)
         return
@@ -988,7 +1011,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         fail("interrupted; done cases are kept, rerun the same command to resume", code=130)
     ray.shutdown()
     if as_json:
-        typer.echo(json.dumps(report.as_dict()))
+        typer.echo(json_line(report.as_dict()))
         return
     rate = report.throughput
     typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_before + report.failed} failed "
@@ -1057,7 +1080,7 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     except _store_errors() as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json.dumps(s))
+        typer.echo(json_line(s))
         return
     from rich.console import Console
     from rich.table import Table
@@ -1134,7 +1157,7 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
 
     result = run_sweep_benchmark(cases, nodes, counts)
     if as_json:
-        typer.echo(json.dumps(result))
+        typer.echo(json_line(result))
         return
     from rich.console import Console
     from rich.table import Table

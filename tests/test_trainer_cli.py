@@ -154,6 +154,8 @@ def test_mismatched_store(trained):
     (("--no-ray", "--label-seed", "1"), ("--label-seed", "--sr")),
     (("--gpus", "1"), ("--gpus",)),
     (("--local", "--no-ray"), ("--no-ray",)),
+    (("--no-ray", "--lr", "inf"), ("--lr",)),
+    (("--workers", "999"), ("--workers 999", "CPUs")),  # Ray Train would wait for them for ever
 ])
 def test_train_bad_inputs(trained, tmp_path, args, words):
     import torch
@@ -166,7 +168,7 @@ def test_train_bad_inputs(trained, tmp_path, args, words):
 
 def test_train_refuses_a_run_dir_of_another_config(trained):
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", trained["run"], "--no-ray", "--config", "A1"),
-                     "another model", "config paper")
+                     "model paper (this command: A1)", "batch_size 8 (this command: 16)")
     assert_bad_input(run("train", "--store", trained["root"] / "missing.zarr", "--run-dir", trained["root"] / "x",
                          "--no-ray"), "no heartctl store")
 
@@ -459,3 +461,43 @@ def test_ensemble_warnings_speak_for_every_member(trained, tmp_path):
     for order in ([trained["run"], low], [low, trained["run"]]):
         warnings = unload_with_network(lv_mesh(0), params, order)["warnings"]
         assert any("pressure 12 is outside the training grid [4, 6]" in w for w in warnings), warnings
+
+
+def test_a_diverging_run_stops_and_keeps_its_last_good_checkpoint(trained, tmp_path):
+    """A loss that turns non-finite is an error (exit 2), not a 'best' epoch: before, a NaN validation
+    loss made the training loss the yardstick and the diverged weights the kept network, exit 0."""
+    run_dir = tmp_path / "r"
+    common = ("train", "--store", trained["store"], "--run-dir", run_dir, "--no-ray", "--batch-size", 8,
+              "--device", "cpu")
+    assert run(*common, "--epochs", 1).exit_code == 0
+    good = load_run(run_dir)
+    assert_bad_input(run(*common, "--epochs", 3, "--lr", "1e12"), "diverged in epoch 2", "--lr")
+    kept = load_run(run_dir)
+    assert kept["epoch"] == 1 and all(torch.equal(good["model"][k], v) for k, v in kept["model"].items())
+    assert len(kept["history"]) == 1
+
+
+def test_a_run_without_validation_cases_says_so_in_strict_json(tmp_path):
+    store = make_tiny_store(tmp_path / "two.zarr", shapes=2, pressures=(8.0,), stiffness=(100.0,))
+    r = run("train", "--store", store, "--run-dir", tmp_path / "r", "--no-ray", "--epochs", 2, "--device", "cpu",
+            "--json")
+    assert r.exit_code == 0, r.output
+
+    def refuse(constant):
+        raise AssertionError(f"{constant} is not JSON")
+
+    summary = json.loads(r.output.strip().splitlines()[-1], parse_constant=refuse)
+    assert summary["best_val_md_mm"] is None and summary["best_epoch"] in (1, 2)
+    assert "no validation cases" in r.output
+    r = run("train", "--store", store, "--run-dir", tmp_path / "r", "--no-ray", "--epochs", 3, "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert "no validation cases, kept epoch" in r.output and "nan" not in r.output
+
+
+def test_a_split_resumes_however_it_is_written(trained, tmp_path):
+    common = ("train", "--store", trained["store"], "--run-dir", tmp_path / "r", "--no-ray", "--batch-size", 8,
+              "--device", "cpu")
+    assert run(*common, "--split", "lovo:P=8", "--epochs", 1).exit_code == 0
+    r = run(*common, "--split", "lovo:p=8.0", "--epochs", 2)
+    assert r.exit_code == 0, r.output
+    assert load_run(tmp_path / "r")["epoch"] == 2

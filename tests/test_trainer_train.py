@@ -53,12 +53,16 @@ def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
     assert s["resumed_from"] == 2 and s["epoch"] == 3 and s["epochs_run"] == 1
     assert [int(r["epoch"]) for r in _rows(run / "metrics.csv")] == [1, 2, 3]
     assert load_run(run)["epoch"] == 3
-    with pytest.raises(TrainerError, match="another"):
+    with pytest.raises(TrainerError, match=r"started with sr 1.0 \(this command: 0.5\)"):
         fit(_cfg(store, epochs=3, sr=0.5), run)
-    with pytest.raises(TrainerError, match="another"):
+    with pytest.raises(TrainerError, match="model settings other than"):
         fit(_cfg(store, epochs=3, model=replace(SMALL, cycle=False)), run)
-    with pytest.raises(TrainerError, match="another rotate_deg"):
+    with pytest.raises(TrainerError, match=r"rotate_deg 0.0 \(this command: 10.0\)"):
         fit(_cfg(store, epochs=3, rotate_deg=10.0), run)
+    # options that change what an epoch is (a silent change mixed two recipes in one run)
+    for option, value in (("batch_size", 3), ("lr_schedule", "cosine"), ("labelled_share", 0.5)):
+        with pytest.raises(TrainerError, match=f"started with {option} "):
+            fit(_cfg(store, epochs=3, **{option: value}), run)
 
 
 def test_resume_obeys_a_new_patience_and_learning_rate(store, tmp_path):

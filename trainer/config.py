@@ -292,10 +292,13 @@ class TrainConfig:
 
     def identity(self) -> dict:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
+        from .splits import parse_split  # (splits imports this module)
+
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
-        ident = {"model": model, "split": self.split, "sr": self.sr, "seed": self.seed, "split_seed": self.data_seed,
-                 "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,
-                 "scale_pct": self.scale_pct}
+        ident = {"model": model, "split": parse_split(self.split), "sr": self.sr, "seed": self.seed,
+                 "split_seed": self.data_seed, "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,
+                 "scale_pct": self.scale_pct, "batch_size": self.batch_size, "lr_schedule": self.lr_schedule,
+                 "labelled_share": self.labelled_share, "weight_decay": self.weight_decay}
         if self.labels_seed != self.data_seed:  # runs from before --label-seed keep their identity
             ident["label_seed"] = self.labels_seed
         return ident

@@ -124,8 +124,9 @@ def _autocast(cfg: TrainConfig, device: torch.device):
     return torch.autocast(device_type="cuda", dtype=torch.bfloat16, enabled=bool(cfg.bf16 and device.type == "cuda"))
 
 
-def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float) -> tuple[float, float]:
-    """(val MSE in normalised units, mean node error mm) over the validation cases of all ranks."""
+def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float) -> tuple[float, float, int]:
+    """(val MSE in normalised units, mean node error mm, validation nodes) over the validation cases of
+    all ranks; NaN, NaN, 0 without validation cases."""
     sq = ab = n = 0.0
     if loader is not None:
         model.eval()
@@ -139,8 +140,14 @@ def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float)
                 n += diff.shape[0]
     sq, ab, n = _all_reduce([sq, ab, n], dist)
     if n == 0:
-        return math.nan, math.nan
-    return sq / (3 * n), ab / n * disp_scale_mm
+        return math.nan, math.nan, 0
+    return sq / (3 * n), ab / n * disp_scale_mm, int(n)
+
+
+def best_val_md(history: list, best_epoch) -> float | None:
+    """The validation MD (mm) of the kept epoch; None when the run had no validation cases."""
+    md = next((r.get("val_md_mm") for r in history if r.get("epoch") == best_epoch), None)
+    return float(md) if md is not None and math.isfinite(md) else None
 
 
 def write_metrics_csv(path: Path, history: list) -> None:
@@ -170,9 +177,12 @@ def check_same_run(state: dict, cfg: TrainConfig, run_dir: Path) -> None:
     old, new = saved.identity(), cfg.identity()
     if old != new:
         diff = [k for k in sorted(old.keys() | new.keys()) if old.get(k) != new.get(k)]
-        raise TrainerError(f"run directory {run_dir} holds a run with another {', '.join(diff)} "
-                           f"(config {saved.config_name}, split {saved.split}, SR {saved.sr:g}, seed {saved.seed}); "
-                           f"use a new --run-dir")
+        shown = {**{k: (old.get(k), new.get(k)) for k in diff}, "split": (saved.split, cfg.split),
+                 "model": (saved.config_name, cfg.config_name)}
+        said = [f"{k} {shown[k][0]} (this command: {shown[k][1]})" if shown[k][0] != shown[k][1]
+                else f"{k} settings other than {shown[k][1]}'s" for k in diff]
+        raise TrainerError(f"run directory {run_dir} holds a run started with {', '.join(said)}; "
+                           f"resume it with the options it started with, or use a new --run-dir")
 
 
 def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: Path) -> None:
@@ -317,8 +327,13 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             sums[3] += g
         sums = _all_reduce(sums, dist)
         train_loss = sums[0] / max(sums[3], 1)
-        val_loss, val_md = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
-        monitor = val_loss if math.isfinite(val_loss) else train_loss
+        val_loss, val_md, n_val = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
+        if not math.isfinite(train_loss) or (n_val and not math.isfinite(val_loss)):
+            # all ranks see the same reduced sums, so all stop here; nothing of this epoch is kept
+            raise TrainerError(f"training diverged in epoch {epoch + 1} (training loss {train_loss:.4g}, "
+                               f"validation loss {val_loss:.4g}); nothing of it is kept; lower --lr "
+                               f"(now {opt.param_groups[0]['lr']:g}) or start a new --run-dir")
+        monitor = val_loss if n_val else train_loss  # no validation cases: the training loss decides
         if cfg.lr_schedule == "plateau":
             sched.step(monitor)
         if monitor < best_val:
@@ -344,8 +359,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                         writer.add_scalar(k, v, epoch + 1)
                 writer.flush()
             dist.log(f"epoch {epoch + 1}/{cfg.epochs}: loss {train_loss:.4g} (sup {row['train_sup']:.4g}, "
-                     f"cycle {row['train_cycle']:.4g}), val {val_loss:.4g} / MD {val_md:.3f} mm, "
-                     f"lr {row['lr']:.2g}, {ep_s:.1f} s ({row['graphs_per_s']:.0f} graphs/s)"
+                     f"cycle {row['train_cycle']:.4g}), "
+                     + (f"val {val_loss:.4g} / MD {val_md:.3f} mm, " if n_val else "no validation cases, ")
+                     + f"lr {row['lr']:.2g}, {ep_s:.1f} s ({row['graphs_per_s']:.0f} graphs/s)"
                      + (" — early stop" if stopped else ""))
             if save:
                 ckpt = {**base_state(cfg, bundle, "gnn"), "model": cpu_state(model), "best_model": best_model,
@@ -368,7 +384,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     done = len(history)
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": done - start_epoch, "epoch": done,
             "resumed_from": start_epoch, "best_epoch": best_epoch, "best_val_loss": best_val,
-            "best_val_md_mm": next((r["val_md_mm"] for r in history if r["epoch"] == best_epoch), None),
+            "best_val_md_mm": best_val_md(history, best_epoch),
             "stopped_early": stopped, "n_parameters": n_params, "train_cases": len(bundle.train),
             "labelled_cases": len(bundle.labelled), "wall_s": time.perf_counter() - t0}
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from .checkpoint import CHECKPOINT_NAME, check_resume_parts, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError
-from .loop import Dist, fit, pick_resume_state, write_metrics_csv
+from .loop import Dist, best_val_md, fit, pick_resume_state, write_metrics_csv
 
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
 # Two harmless warnings of a local Ray without a dashboard (our --local mode), quietened in its
@@ -161,9 +161,8 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     save_checkpoint(local, {k: v for k, v in final.items() if k not in ("format", "version")})
     write_metrics_csv(run_dir / "metrics.csv", final.get("history", []))
     hist = final.get("history", [])
-    best = next((r for r in hist if r["epoch"] == final.get("best_epoch")), {})
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epoch": int(final["epoch"]),
             "best_epoch": final.get("best_epoch"), "best_val_loss": final.get("best_val"),
-            "best_val_md_mm": best.get("val_md_mm"), "stopped_early": final.get("stopped_early"),
+            "best_val_md_mm": best_val_md(hist, final.get("best_epoch")), "stopped_early": final.get("stopped_early"),
             "n_parameters": final.get("n_parameters"), "workers": scaling.num_workers,
             "backend": "nccl" if use_gpu else "gloo", "ray_storage": str(run_dir / RAY_RUN_NAME)}
