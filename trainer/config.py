@@ -9,6 +9,10 @@ class TrainerError(ValueError):
     """Bad input to training / evaluation / network unloading; the message is one line."""
 
 
+class TrainingDiverged(TrainerError):
+    """The training loss (or validation loss) turned non-finite: every rank stops at the same epoch."""
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """Which parts make up the network. Every ablation and baseline is a value of this, not a copy

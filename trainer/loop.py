@@ -17,7 +17,7 @@ from ._malloc import tune_allocator
 from .augment import rotate_batch, scale_batch
 from .averaging import WeightAverage
 from .checkpoint import check_resume_parts, cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
-from .config import TrainConfig, TrainerError
+from .config import TrainConfig, TrainerError, TrainingDiverged
 from .data import DataBundle, check_fingerprint, training_data
 from .files import write_csv, write_json
 from .model import build_model, count_parameters, loss_terms
@@ -330,7 +330,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         val_loss, val_md, n_val = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
         if not math.isfinite(train_loss) or (n_val and not math.isfinite(val_loss)):
             # all ranks see the same reduced sums, so all stop here; nothing of this epoch is kept
-            raise TrainerError(f"training diverged in epoch {epoch + 1} (training loss {train_loss:.4g}, "
+            raise TrainingDiverged(f"training diverged in epoch {epoch + 1} (training loss {train_loss:.4g}, "
                                f"validation loss {val_loss:.4g}); nothing of it is kept; lower --lr "
                                f"(now {opt.param_groups[0]['lr']:g}) or start a new --run-dir")
         monitor = val_loss if n_val else train_loss  # no validation cases: the training loss decides

@@ -10,9 +10,14 @@ import tempfile
 from pathlib import Path
 
 from .checkpoint import CHECKPOINT_NAME, check_resume_parts, load_checkpoint, run_checkpoint_path, save_checkpoint
-from .config import TrainConfig, TrainerError
+from .config import TrainConfig, TrainerError, TrainingDiverged
 from .loop import Dist, best_val_md, fit, pick_resume_state, write_metrics_csv
 
+# A diverged run (the same epoch on every rank) is told to the driver by a reported marker checkpoint
+# (one file, the message; Ray keeps metrics only with checkpoints), not by an error that Ray would
+# retry --max-failures times, each time diverging again.
+DIVERGED = "heartctl_diverged"
+DIVERGED_FILE = "diverged.txt"
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
 # Two harmless warnings of a local Ray without a dashboard (our --local mode), quietened in its
 # worker processes: Ray Train's placement-group cleaner polls the State API, which such a Ray does
@@ -82,7 +87,8 @@ def _train_worker(config: dict) -> None:
         ckpt = ray.train.get_checkpoint()
         if ckpt is not None:
             with ckpt.as_directory() as d:
-                candidates.append(load_checkpoint(Path(d) / CHECKPOINT_NAME))
+                if (Path(d) / CHECKPOINT_NAME).is_file():  # not a divergence marker
+                    candidates.append(load_checkpoint(Path(d) / CHECKPOINT_NAME))
         if config.get("driver_state") is not None:  # the run directory's own checkpoint, via the object store
             path = Path(tempfile.mkdtemp()) / CHECKPOINT_NAME
             path.write_bytes(ray.get(config["driver_state"]))
@@ -106,7 +112,15 @@ def _train_worker(config: dict) -> None:
 
     dist = Dist(rank=rank, world=world, device=device, wrap_model=ray.train.torch.prepare_model, restore=restore,
                 report=report, log=log, write_local=same_host)
-    fit(cfg, run_dir, dist)
+    try:
+        fit(cfg, run_dir, dist)
+    except TrainingDiverged as exc:  # on every rank at once (reduced losses)
+        if rank != 0:
+            ray.train.report({DIVERGED: str(exc)})
+            return
+        with tempfile.TemporaryDirectory() as tmp:
+            (Path(tmp) / DIVERGED_FILE).write_text(str(exc))
+            ray.train.report({DIVERGED: str(exc)}, checkpoint=ray.train.Checkpoint.from_directory(tmp))
 
 
 def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, cpu_workers: int = 2,
@@ -151,15 +165,22 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     result = trainer.fit()
     if result.error is not None:  # pragma: no cover - surfaced by fit() raising in practice
         raise result.error
+    diverged = (result.metrics or {}).get(DIVERGED)
     final = None
-    if result.checkpoint is not None:
-        with result.checkpoint.as_directory() as d:
-            final = load_checkpoint(Path(d) / CHECKPOINT_NAME)
+    for checkpoint, _ in reversed(result.best_checkpoints or [(result.checkpoint, None)]):  # latest first
+        if checkpoint is None:
+            continue
+        with checkpoint.as_directory() as d:
+            if (Path(d) / CHECKPOINT_NAME).is_file():
+                final = load_checkpoint(Path(d) / CHECKPOINT_NAME)
+                break
     final = pick_resume_state([final, load_checkpoint(local) if local.is_file() else None])
     if final is None:
-        raise TrainerError("Ray Train finished without a checkpoint")
+        raise TrainerError(diverged or "Ray Train finished without a checkpoint")
     save_checkpoint(local, {k: v for k, v in final.items() if k not in ("format", "version")})
     write_metrics_csv(run_dir / "metrics.csv", final.get("history", []))
+    if diverged:  # the run directory keeps the last checkpoint from before
+        raise TrainerError(diverged)
     hist = final.get("history", [])
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epoch": int(final["epoch"]),
             "best_epoch": final.get("best_epoch"), "best_val_loss": final.get("best_val"),
