@@ -167,7 +167,10 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
 
 
 def _finite_or_none(value):
-    """JSON has no NaN or Infinity: a non-finite number becomes null (nested dicts and lists too)."""
+    """JSON has no NaN or Infinity: a non-finite number becomes null (nested dicts and lists too;
+    NumPy / torch scalars and arrays as Python numbers and lists)."""
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        value = value.tolist()
     if isinstance(value, float):
         return value if value == value and abs(value) != float("inf") else None
     if isinstance(value, dict):

@@ -7,6 +7,7 @@ import os
 import shutil
 import sys
 import tempfile
+import uuid
 from pathlib import Path
 
 from .checkpoint import CHECKPOINT_NAME, check_resume_parts, load_checkpoint, run_checkpoint_path, save_checkpoint
@@ -116,11 +117,11 @@ def _train_worker(config: dict) -> None:
         fit(cfg, run_dir, dist)
     except TrainingDiverged as exc:  # on every rank at once (reduced losses)
         if rank != 0:
-            ray.train.report({DIVERGED: str(exc)})
+            ray.train.report({DIVERGED: str(exc), "heartctl_call": config["call"]})
             return
         with tempfile.TemporaryDirectory() as tmp:
             (Path(tmp) / DIVERGED_FILE).write_text(str(exc))
-            ray.train.report({DIVERGED: str(exc)}, checkpoint=ray.train.Checkpoint.from_directory(tmp))
+            ray.train.report({DIVERGED: str(exc), "heartctl_call": config["call"]}, checkpoint=ray.train.Checkpoint.from_directory(tmp))
 
 
 def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, cpu_workers: int = 2,
@@ -150,12 +151,14 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
         if saved.get("kind") == "gnn":
             check_resume_parts(saved, local, TrainConfig.from_dict(saved["train_config"]).model.ema_decay > 0)
     use_gpu = gpus > 0
+    call = uuid.uuid4().hex  # tells this call's divergence marker from an earlier call's
     scaling = ScalingConfig(num_workers=gpus if use_gpu else cpu_workers, use_gpu=use_gpu,
                             resources_per_worker=None if use_gpu else {"CPU": threads_per_worker})
     trainer = TorchTrainer(
         _train_worker,
         train_loop_config={"train_config": cfg.as_dict(), "run_dir": str(run_dir), "driver_state": driver_state,
-                           "driver_ip": ray.util.get_node_ip_address(), "threads_per_worker": threads_per_worker},
+                           "driver_ip": ray.util.get_node_ip_address(), "threads_per_worker": threads_per_worker,
+                           "call": call},
         torch_config=TorchConfig(backend="nccl" if use_gpu else "gloo"),
         scaling_config=scaling,
         run_config=RunConfig(name=RAY_RUN_NAME, storage_path=str(run_dir),
@@ -165,7 +168,8 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     result = trainer.fit()
     if result.error is not None:  # pragma: no cover - surfaced by fit() raising in practice
         raise result.error
-    diverged = (result.metrics or {}).get(DIVERGED)
+    metrics = result.metrics or {}  # Ray restores the latest checkpoint's metrics from an earlier call too
+    diverged = metrics.get(DIVERGED) if metrics.get("heartctl_call") == call else None
     final = None
     for checkpoint, _ in reversed(result.best_checkpoints or [(result.checkpoint, None)]):  # latest first
         if checkpoint is None:
