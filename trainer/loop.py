@@ -331,9 +331,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         if not math.isfinite(train_loss) or (n_val and not math.isfinite(val_loss)):
             # all ranks see the same reduced sums, so all stop here; nothing of this epoch is kept
             raise TrainingDiverged(f"training diverged in epoch {epoch + 1} (training loss {train_loss:.4g}, "
-                               f"validation loss {val_loss:.4g}); {run_dir} keeps its checkpoint from before; "
-                               f"lower the learning rate (--lr, now {opt.param_groups[0]['lr']:g}) or start a new "
-                               f"run directory")
+                                   f"validation loss {val_loss:.4g}); {run_dir} keeps its checkpoint from before; "
+                                   f"lower the learning rate (--lr, now {opt.param_groups[0]['lr']:g}) or start a "
+                                   f"new run directory")
         monitor = val_loss if n_val else train_loss  # no validation cases: the training loss decides
         if cfg.lr_schedule == "plateau":
             sched.step(monitor)
