@@ -185,6 +185,20 @@ def json_line(value) -> str:
     return json.dumps(_finite_or_none(value), default=str, allow_nan=False)
 
 
+def _terminated(signum, frame):
+    raise KeyboardInterrupt
+
+
+def stop_on_sigterm() -> None:
+    """SIGTERM (kill, Slurm, systemd) ends a long command as Ctrl-C does: one line, exit 130, done work
+    kept; without this, Ray's own handler dumps a C++ stack. Main thread only (signal's rule)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminated)
+
+
 def _given(ctx: typer.Context, name: str) -> bool:
     """Whether the user named option `name` on the command line (not left at its default). By the
     source's name: typer vendors its own click, whose ParameterSource is not click.core's."""
@@ -558,6 +572,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         import torch
 
         dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+        stop_on_sigterm()
         try:
             summary = fit(cfg, run_dir, Dist(device=dev, log=lambda line: typer.echo(line, err=True)))
         except _trainer_errors() as exc:
@@ -588,6 +603,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         except (ConnectionError, RuntimeError, TrainerError) as exc:
             ray.shutdown()
             fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0]}")
+        stop_on_sigterm()  # after ray.init, whose driver installs its own handler
         try:
             summary = train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=max_failures)
         except _trainer_errors() as exc:
@@ -994,6 +1010,12 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     if stored is not None:
         left = remaining_cases(spec, store, retry_failed)
         if left["to_run"] == 0:
+            if as_json:  # the keys of a run's report, nothing submitted
+                from orchestrator.sweep import SweepReport
+
+                typer.echo(json_line(SweepReport(total=spec.n_cases, done_before=left["done"],
+                                                 failed_before=left["failed"]).as_dict()))
+                return
             typer.echo(f"{store}: nothing to run — {left['done']} done, {left['failed']} failed of {spec.n_cases}"
                        + (" (--retry-failed reruns the failed ones)" if left["failed"] else ""))
             return
@@ -1001,6 +1023,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         init_ray(address=address, num_cpus=num_cpus or (2 if local else None), local=local)
     except (ConnectionError, ValueError, RuntimeError) as exc:
         fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}")
+    stop_on_sigterm()  # after ray.init, whose driver installs its own handler
     import ray
 
     try:

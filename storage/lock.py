@@ -20,6 +20,9 @@ import time
 from .store import StoreError, _local_path, is_url
 
 LOCK_NAME = ".heartctl-writer.lock"
+# holder() probes the lock by taking it for a moment; a writer that finds it busy tries again for this
+# long before it believes another writer holds it (a real writer holds it for the whole sweep).
+PROBE_WAIT_S = 1.0
 
 
 def holder(location) -> dict | None:
@@ -68,12 +71,18 @@ class WriterLock:
         if self.path is None or self._fd is not None:
             return self
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            info = _read(fd)
-            os.close(fd)
-            raise StoreError(_held_message(self.location, info)) from None
+        deadline = time.monotonic() + PROBE_WAIT_S
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() < deadline:  # perhaps only holder()'s probe (status, check_free)
+                    time.sleep(0.02)
+                    continue
+                info = _read(fd)
+                os.close(fd)
+                raise StoreError(_held_message(self.location, info)) from None
         os.ftruncate(fd, 0)
         os.write(fd, json.dumps({"host": socket.gethostname(), "pid": os.getpid(),
                                  "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")}).encode())

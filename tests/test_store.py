@@ -268,3 +268,26 @@ def test_one_writer_per_store(tmp_path, shape0):
         assert lock.held and json.loads((tmp_path / "s.zarr" / LOCK_NAME).read_text())["pid"] == os.getpid()
         assert holder(store.location) is None  # this process's own lock does not refuse it
     assert (tmp_path / "s.zarr" / LOCK_NAME).read_text() == ""
+
+
+def test_status_probing_the_lock_does_not_refuse_a_writer(tmp_path, shape0):
+    """`status` (holder()) takes the lock for a moment to see whether anybody holds it; a writer
+    starting in that moment must not be refused as if another sweep held the store."""
+    import subprocess
+    import sys
+
+    from storage.lock import WriterLock
+
+    store = _new_store(tmp_path, shape0)
+    probe = ("import sys, time; sys.path.insert(0, sys.argv[2]); from storage.lock import holder; "
+             "holder(sys.argv[1]); print('probing', flush=True); end = time.time() + 60\n"
+             "while time.time() < end: holder(sys.argv[1])")
+    repo = str(Path(__file__).resolve().parents[1])
+    other = subprocess.Popen([sys.executable, "-c", probe, store.location, repo], stdout=subprocess.PIPE, text=True)
+    try:
+        assert other.stdout.readline().strip() == "probing"
+        for _ in range(400):
+            WriterLock(store.location).acquire().release()
+    finally:
+        other.kill()
+        other.wait()

@@ -28,6 +28,12 @@ def test_generate_from_user_meshes_in_cm_and_resume(tmp_path):
     assert len(reader.done_cases()) == 2
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and "nothing to run" in again.output
+    import json
+
+    as_json = CliRunner().invoke(app, args + ["--json"])  # one JSON object, as a run gives, not the text line
+    assert as_json.exit_code == 0, as_json.output
+    report = json.loads(as_json.output.strip().splitlines()[-1])
+    assert (report["total"], report["done_before"], report["failed_before"], report["submitted"]) == (2, 2, 0, 0)
     # the same store with other files is refused
     (folder / "patient1.vtu").unlink()
     other = CliRunner().invoke(app, args)

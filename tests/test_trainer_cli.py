@@ -501,3 +501,31 @@ def test_a_split_resumes_however_it_is_written(trained, tmp_path):
     r = run(*common, "--split", "lovo:p=8.0", "--epochs", 2)
     assert r.exit_code == 0, r.output
     assert load_run(tmp_path / "r")["epoch"] == 2
+
+
+def test_sigterm_stops_training_like_ctrl_c(trained, tmp_path):
+    """kill / Slurm / systemd stop a job with SIGTERM: one line, exit 130, the checkpoint kept, resumable."""
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = str(Path(__file__).resolve().parents[1])
+    run_dir = tmp_path / "r"
+    cmd = [sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); from cli import main; "
+           "sys.argv = ['heartctl'] + sys.argv[2:]; main()", repo, "train", "--store", str(trained["store"]),
+           "--run-dir", str(run_dir), "--no-ray", "--epochs", "100000", "--batch-size", "8", "--device", "cpu"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**__import__("os").environ, "OMP_NUM_THREADS": "1"})
+    try:
+        for line in proc.stderr:
+            if line.startswith("epoch 2/"):
+                break
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, err
+    errors = [ln for ln in err.splitlines() if ln.startswith("heartctl: error:")]
+    assert len(errors) == 1 and "interrupted" in errors[0] and "Traceback" not in err
+    assert load_run(run_dir)["epoch"] >= 1  # epoch 2 may have been cut short while saving
