@@ -38,3 +38,12 @@ def test_generate_from_user_meshes_in_cm_and_resume(tmp_path):
     (folder / "patient1.vtu").unlink()
     other = CliRunner().invoke(app, args)
     assert other.exit_code == 2 and "--meshes" in other.output
+
+
+def test_generate_warns_of_a_pressure_beyond_end_diastole(tmp_path):
+    r = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--shapes", "1", "--pressures",
+                                 "8,120", "--stiffness", "150", "--fidelity", "fast", "--dry-run"])
+    assert r.exit_code == 0, r.output
+    assert "warning: --pressures 120 mmHg: end-diastolic pressures are 0–40 mmHg" in r.output
+    assert "warning" not in CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--shapes", "1",
+                                                     "--pressures", "8,14", "--dry-run"]).output
