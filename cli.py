@@ -185,9 +185,6 @@ def json_line(value) -> str:
     return json.dumps(_finite_or_none(value), default=str, allow_nan=False)
 
 
-HIGHEST_ED_PRESSURE_MMHG = 40.0  # end-diastolic pressures above this draw a warning in generate
-
-
 def _terminated(signum, frame):
     raise KeyboardInterrupt
 
@@ -998,6 +995,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         stored = check_request(spec, store, for_writing=not dry_run)
     except (*_store_errors(), MeshError) as exc:
         fail(str(exc))
+    from solver.parameters import HIGHEST_ED_PRESSURE_MMHG
+
     high = [p for p in spec.pressure_mmhg if p > HIGHEST_ED_PRESSURE_MMHG]
     if high:  # allowed (the solver decides), but likely a systolic value typed by mistake
         typer.echo(f"warning: --pressures {', '.join(f'{p:g}' for p in high)} mmHg: end-diastolic pressures are "

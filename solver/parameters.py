@@ -6,6 +6,9 @@ import math
 from dataclasses import dataclass
 
 MMHG_TO_PA = 133.322387415
+# End-diastolic pressures stay below this even in heart failure; `generate` warns of higher ones (an
+# 80 or 120 is likely a systolic value typed by mistake) but lets the solver decide.
+HIGHEST_ED_PRESSURE_MMHG = 40.0
 
 PAPER_GRID = {
     "pressure_mmhg": (4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
