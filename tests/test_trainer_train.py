@@ -92,6 +92,34 @@ def test_resumed_run_equals_an_uninterrupted_one(store, tmp_path):
     assert once["history"][-1]["train_loss"] == twice["history"][-1]["train_loss"]
 
 
+def test_resume_does_not_lean_on_a_saved_generator_state(store, tmp_path):
+    """Each epoch's dropout draws come from (seed, epoch, rank), not from a generator state carried in
+    the checkpoint: under DDP rank 0 writes the checkpoint for every rank, and on CUDA its generator
+    state is not another rank's. A resume with a foreign generator state (here: a checkpoint whose
+    saved state was another process's) still equals the uninterrupted run, and ranks draw apart."""
+    from trainer.loop import seed_epoch
+
+    fit(_cfg(store), tmp_path / "once")
+    fit(_cfg(store, epochs=1), tmp_path / "twice")
+    path = tmp_path / "twice" / "checkpoint.pt"
+    state = load_checkpoint(path)
+    torch.manual_seed(12345)
+    foreign = torch.get_rng_state()
+    state = {k: v for k, v in state.items() if k not in ("format", "version")}
+    state["rng_torch"] = foreign  # what an older heartctl restored on every rank
+    save_checkpoint(path, state)
+    torch.manual_seed(999)  # and this process's own generator is elsewhere too
+    fit(_cfg(store), tmp_path / "twice")
+    once, twice = load_run(tmp_path / "once"), load_run(tmp_path / "twice")
+    for name, w in once["model"].items():
+        torch.testing.assert_close(twice["model"][name], w, rtol=0, atol=0, msg=name)
+    draws = []
+    for rank in (0, 1, 0):
+        seed_epoch(0, 3, rank)
+        draws.append(torch.rand(4))
+    assert torch.equal(draws[0], draws[2]) and not torch.equal(draws[0], draws[1])
+
+
 def test_cosine_schedule_sets_each_epochs_rate(store, tmp_path):
     """--lr-schedule cosine: epoch e trains at cosine_lr(e, E, lr), from lr down towards 1 % of it
     (run with the wall-coordinate model, which must train end to end too)."""

@@ -52,22 +52,13 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def rng_state(device: torch.device) -> dict:
-    """The torch generators' states (dropout draws), saved with a checkpoint so that a resumed run
-    continues the random sequence an uninterrupted one would have drawn (data order is reseeded per
-    epoch by the samplers)."""
-    out = {"rng_torch": torch.get_rng_state()}
-    if device.type == "cuda":
-        out["rng_cuda"] = torch.cuda.get_rng_state(device)
-    return out
-
-
-def restore_rng(state: dict, device: torch.device) -> None:
-    """Undo rng_state (checkpoints written before it was saved keep the seeded generators)."""
-    if state.get("rng_torch") is not None:
-        torch.set_rng_state(state["rng_torch"].cpu())
-    if device.type == "cuda" and state.get("rng_cuda") is not None:
-        torch.cuda.set_rng_state(state["rng_cuda"].cpu(), device)
+def seed_epoch(seed: int, epoch: int, rank: int) -> None:
+    """Seed torch's generators (dropout draws; the CPU's and every CUDA device's) for one epoch of one
+    process from (seed, epoch, rank) alone. A resumed run then draws what an uninterrupted one would
+    have drawn, on any device and any rank, with no generator state saved: a CUDA generator's offset
+    grows with each tensor's size, so ranks whose batches differ in node count drift apart, and rank
+    0's saved state would not be another rank's. Ranks draw independent dropout masks."""
+    torch.manual_seed(int(np.random.SeedSequence([seed, epoch, rank, 13]).generate_state(1)[0]))
 
 
 def _all_reduce(values: list, dist: Dist) -> list:
@@ -253,7 +244,6 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         bad_epochs, history = int(state["bad_epochs"]), list(state["history"])
         best_model = state.get("best_model")
         stopped = bad_epochs >= cfg.patience  # a rerun with a longer --patience trains on
-        restore_rng(state, dist.device)
         if dist.is_main:
             dist.log(f"resuming {run_dir} from epoch {start_epoch} (best validation {best_val:.4g} at epoch {best_epoch})")
         saved_lr = float(state["train_config"].get("lr", cfg.lr))
@@ -308,6 +298,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         sampler.set_epoch(epoch)
         wrapped.train()
         sums = [0.0, 0.0, 0.0, 0.0]  # loss·graphs, sup·graphs, cycle·graphs, graphs
+        seed_epoch(cfg.seed, epoch, dist.rank)
         aug_gen = torch.Generator().manual_seed((cfg.seed * 100003 + epoch) * 1009 + dist.rank)
         for batch in train_loader:
             batch = rotate_batch(_move(batch, dist.device), cfg.rotate_deg, aug_gen)
@@ -372,7 +363,6 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                         "n_parameters": n_params}
                 if average is not None:
                     ckpt["weight_average"] = average.state_dict()
-                ckpt.update(rng_state(dist.device))
                 if writes:
                     save_checkpoint(local, ckpt)
         if dist.report is not None:
