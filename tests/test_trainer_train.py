@@ -340,8 +340,48 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
         assert train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=2, max_failures=0)["epoch"] == 3
         s = train_with_ray(_cfg(store, epochs=4), run, gpus=0, cpu_workers=2, max_failures=0)
         assert s["epoch"] == 4 and [h["epoch"] for h in load_run(run)["history"]] == [1, 2, 3, 4]
+        # a store the workers cannot read (the driver's checks passed, e.g. a path on the driver's own disk):
+        # one line naming the worker, not Ray's failure retried --max-failures times
+        with pytest.raises(TrainerError, match=r"missing\.zarr.*\(Ray worker 0 on "):
+            train_with_ray(_cfg(str(tmp_path / "missing.zarr")), tmp_path / "ray_missing", gpus=0, cpu_workers=2,
+                           max_failures=2)
+        assert not (tmp_path / "ray_missing" / "checkpoint.pt").exists()
     finally:
         ray.shutdown()
+
+
+def _refusal_rank(rank: int, world: int, port: int, out) -> None:
+    import torch.distributed as tdist
+
+    from trainer.ray_train import agreed_refusal
+
+    tdist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world)
+    try:
+        own = "cannot read store s.zarr (rank 1)" if rank == 1 else None
+        out.put((rank, agreed_refusal(own, world, torch.device("cpu")), agreed_refusal(None, world, torch.device("cpu"))))
+    finally:
+        tdist.destroy_process_group()
+
+
+def test_a_refusal_on_one_rank_stops_every_rank():
+    """Only rank 1 cannot read the store: every rank gets its message (a collective, so rank 0 does not
+    wait for ever in DDP's first broadcast), and with no refusal every rank trains."""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    ctx = mp.get_context("spawn")
+    out = ctx.Queue()
+    procs = [ctx.Process(target=_refusal_rank, args=(r, 2, port, out)) for r in range(2)]
+    for p in procs:
+        p.start()
+    got = sorted(out.get(timeout=120) for _ in procs)
+    for p in procs:
+        p.join(30)
+    assert got == [(0, "cannot read store s.zarr (rank 1)", None), (1, "cannot read store s.zarr (rank 1)", None)]
 
 
 def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():

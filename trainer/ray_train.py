@@ -14,11 +14,12 @@ from .checkpoint import CHECKPOINT_NAME, check_resume_parts, load_checkpoint, ru
 from .config import TrainConfig, TrainerError, TrainingDiverged
 from .loop import Dist, best_val_md, fit, pick_resume_state, write_metrics_csv
 
-# A diverged run (the same epoch on every rank) is told to the driver by a reported marker checkpoint
-# (one file, the message; Ray keeps metrics only with checkpoints), not by an error that Ray would
-# retry --max-failures times, each time diverging again.
-DIVERGED = "heartctl_diverged"
-DIVERGED_FILE = "diverged.txt"
+# A refusal that every rank reaches alike (the training loss diverged in the same epoch; the store
+# cannot be read or split on some worker) is told to the driver by a reported marker checkpoint (one
+# file, the message; Ray keeps metrics only with checkpoints), not by an error that Ray would retry
+# --max-failures times, each time refusing again.
+REFUSED = "heartctl_refused"
+REFUSED_FILE = "refused.txt"
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
 # Two harmless warnings of a local Ray without a dashboard (our --local mode), quietened in its
 # worker processes: Ray Train's placement-group cleaner polls the State API, which such a Ray does
@@ -67,6 +68,39 @@ def quieten_checkpoint_reports() -> None:
             logger.addFilter(warnings_and_up)
 
 
+def worker_data(cfg: TrainConfig, rank: int, host: str, same_host: bool):
+    """(the worker's DataBundle, None), or (None, a one-line refusal) when it cannot read or split the
+    store. The driver checked the store before the workers started; a worker on another machine can
+    still miss it (a path on the driver's own disk)."""
+    from storage.store import StoreError, is_url
+
+    from .data import training_data
+
+    try:
+        return training_data(cfg), None
+    except (TrainerError, StoreError) as exc:
+        where = f"Ray worker {rank} on {host}"
+        if isinstance(exc, StoreError) and not same_host and not is_url(cfg.store):
+            where += ", not the driver's machine: every worker must reach the store at the same path (a shared " \
+                     "filesystem) or read it from s3://"
+        return None, f"{exc} ({where})"
+
+
+def agreed_refusal(refusal: str | None, world: int, device) -> str | None:
+    """The lowest refusing rank's message on every rank, or None when no rank refuses (a collective:
+    every rank calls it, so they all stop together or all train)."""
+    if world <= 1:
+        return refusal
+    import torch
+    import torch.distributed as tdist
+
+    if device.type == "cuda":  # NCCL gathers objects through the current device
+        torch.cuda.set_device(device)
+    gathered = [None] * world
+    tdist.all_gather_object(gathered, refusal)
+    return next((m for m in gathered if m), None)
+
+
 def _train_worker(config: dict) -> None:
     """Runs in every Ray Train worker."""
     import ray
@@ -88,7 +122,7 @@ def _train_worker(config: dict) -> None:
         ckpt = ray.train.get_checkpoint()
         if ckpt is not None:
             with ckpt.as_directory() as d:
-                if (Path(d) / CHECKPOINT_NAME).is_file():  # not a divergence marker
+                if (Path(d) / CHECKPOINT_NAME).is_file():  # not a refusal marker
                     candidates.append(load_checkpoint(Path(d) / CHECKPOINT_NAME))
         if config.get("driver_state") is not None:  # the run directory's own checkpoint, via the object store
             path = Path(tempfile.mkdtemp()) / CHECKPOINT_NAME
@@ -111,17 +145,26 @@ def _train_worker(config: dict) -> None:
 
     quieten_checkpoint_reports()
 
-    dist = Dist(rank=rank, world=world, device=device, wrap_model=ray.train.torch.prepare_model, restore=restore,
-                report=report, log=log, write_local=same_host)
-    try:
-        fit(cfg, run_dir, dist)
-    except TrainingDiverged as exc:  # on every rank at once (reduced losses)
+    def refuse(message: str) -> None:  # on every rank at once; rank 0 reports the marker checkpoint
+        metrics = {REFUSED: message, "heartctl_call": config["call"]}
         if rank != 0:
-            ray.train.report({DIVERGED: str(exc), "heartctl_call": config["call"]})
+            ray.train.report(metrics)
             return
         with tempfile.TemporaryDirectory() as tmp:
-            (Path(tmp) / DIVERGED_FILE).write_text(str(exc))
-            ray.train.report({DIVERGED: str(exc), "heartctl_call": config["call"]}, checkpoint=ray.train.Checkpoint.from_directory(tmp))
+            (Path(tmp) / REFUSED_FILE).write_text(message)
+            ray.train.report(metrics, checkpoint=ray.train.Checkpoint.from_directory(tmp))
+
+    dist = Dist(rank=rank, world=world, device=device, wrap_model=ray.train.torch.prepare_model, restore=restore,
+                report=report, log=log, write_local=same_host)
+    bundle, refusal = worker_data(cfg, rank, ray.util.get_node_ip_address(), same_host)
+    refusal = agreed_refusal(refusal, world, device)
+    if refusal is not None:
+        refuse(refusal)
+        return
+    try:
+        fit(cfg, run_dir, dist, bundle=bundle)
+    except TrainingDiverged as exc:  # on every rank at once (reduced losses)
+        refuse(str(exc))
 
 
 def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, cpu_workers: int = 2,
@@ -151,7 +194,7 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
         if saved.get("kind") == "gnn":
             check_resume_parts(saved, local, TrainConfig.from_dict(saved["train_config"]).model.ema_decay > 0)
     use_gpu = gpus > 0
-    call = uuid.uuid4().hex  # tells this call's divergence marker from an earlier call's
+    call = uuid.uuid4().hex  # tells this call's refusal marker from an earlier call's
     scaling = ScalingConfig(num_workers=gpus if use_gpu else cpu_workers, use_gpu=use_gpu,
                             resources_per_worker=None if use_gpu else {"CPU": threads_per_worker})
     trainer = TorchTrainer(
@@ -169,7 +212,7 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     if result.error is not None:  # pragma: no cover - surfaced by fit() raising in practice
         raise result.error
     metrics = result.metrics or {}  # Ray restores the latest checkpoint's metrics from an earlier call too
-    diverged = metrics.get(DIVERGED) if metrics.get("heartctl_call") == call else None
+    refused = metrics.get(REFUSED) if metrics.get("heartctl_call") == call else None
     final = None
     for checkpoint, _ in reversed(result.best_checkpoints or [(result.checkpoint, None)]):  # latest first
         if checkpoint is None:
@@ -180,11 +223,11 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
                 break
     final = pick_resume_state([final, load_checkpoint(local) if local.is_file() else None])
     if final is None:
-        raise TrainerError(diverged or "Ray Train finished without a checkpoint")
+        raise TrainerError(refused or "Ray Train finished without a checkpoint")
     save_checkpoint(local, {k: v for k, v in final.items() if k not in ("format", "version")})
     write_metrics_csv(run_dir / "metrics.csv", final.get("history", []))
-    if diverged:  # the run directory keeps the last checkpoint from before
-        raise TrainerError(diverged)
+    if refused:  # the run directory keeps the last checkpoint from before
+        raise TrainerError(refused)
     hist = final.get("history", [])
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epoch": int(final["epoch"]),
             "best_epoch": final.get("best_epoch"), "best_val_loss": final.get("best_val"),
