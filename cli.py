@@ -583,7 +583,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     else:
         import ray
 
-        from trainer.ray_train import NO_DASHBOARD_SETUP_HOOK, train_with_ray
+        from trainer.ray_train import LOCAL_RAY_TRAIN_ENV, NO_DASHBOARD_SETUP_HOOK, train_with_ray
 
         try:
             if address:
@@ -592,7 +592,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                 from orchestrator.sweep import WORKER_NICENESS, start_local_ray
 
                 start_local_ray(num_cpus=workers if local else None, include_dashboard=False,
-                                runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK},
+                                runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK,
+                                             "env_vars": LOCAL_RAY_TRAIN_ENV},
                                 _system_config={"worker_niceness": WORKER_NICENESS})
             if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
                 raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")

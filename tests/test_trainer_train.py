@@ -413,6 +413,17 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
             lg.filters = filters
 
 
+def test_local_ray_turns_off_the_preemption_watcher_by_rays_own_name():
+    """The local Ray's environment names the flag Ray Train reads (a renamed flag would bring back the
+    watcher's error line in every local training run)."""
+    pytest.importorskip("ray")
+    from ray.train.v2._internal.constants import ENABLE_PREEMPTION_WATCHER_ENV_VAR
+
+    from trainer.ray_train import LOCAL_RAY_TRAIN_ENV
+
+    assert LOCAL_RAY_TRAIN_ENV == {ENABLE_PREEMPTION_WATCHER_ENV_VAR: "0"}
+
+
 def _captured(logger_name: str, emit) -> list[str]:
     import logging
 

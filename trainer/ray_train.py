@@ -28,6 +28,10 @@ RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the r
 # busy cores are still starting the workers, which it logs as a warning with a full traceback.
 # A filter, not a level: the controller's logging.config.dictConfig resets its child loggers' levels.
 NO_DASHBOARD_SETUP_HOOK = "trainer.ray_train.quieten_local_ray"
+# A local Ray is one machine that no cloud drains: Ray Train's preemption watcher (an actor polling the
+# nodes' drain state, whose start logs a core-worker error line about its restart policy) has nothing
+# to watch there.
+LOCAL_RAY_TRAIN_ENV = {"RAY_TRAIN_ENABLE_PREEMPTION_WATCHER": "0"}
 LOCAL_RAY_NOISY_LOGGERS = ("ray.train.v2._internal.execution.controller.placement_group_cleaner",
                            "ray.train.v2._internal.execution.scaling_policy.autoscaling_coordinator_client")
 
