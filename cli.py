@@ -593,7 +593,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
 
                 start_local_ray(num_cpus=workers if local else None, include_dashboard=False,
                                 runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK,
-                                             "env_vars": LOCAL_RAY_TRAIN_ENV},
+                                             "env_vars": dict(LOCAL_RAY_TRAIN_ENV)},  # Ray adds to it
                                 _system_config={"worker_niceness": WORKER_NICENESS})
             if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
                 raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
