@@ -111,6 +111,7 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
             stats.final_residual, stats.min_jacobian = rnorm, min_J
             if min_J > 0 and rnorm <= max(r_tol, 1e-3 * force_scale):
                 return z, True, ""
+    linsolve.forget()
     return z, False, f"no convergence in {fid.max_newton} Newton iterations (|R|∞ {rnorm:.3g})"
 
 

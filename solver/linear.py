@@ -128,9 +128,14 @@ class SparseSolver:
         return self.solve_factored(b)
 
     def forget(self) -> None:
-        """Drop the factorisation (the next Newton iteration refactorises)."""
+        """Drop the factorisation and PARDISO's analysis: after a failed solve the next factorisation
+        starts afresh. The analysis (phase 11) is skipped while the pattern stays the same, but with
+        scaling and weighted matching on it depends on the matrix's values too: a load-stepping
+        restart from zero strain, factorised with the scaling and matching of a failed full-load
+        attempt's tangent, collapsed at 0 % of the load (a network's guess for an l2u mesh)."""
         self._A = None
         self._lu = None
+        self._pattern_key = None
 
     def free(self) -> None:
         """Release MKL's memory for this solver (PARDISO phase −1). MKL keeps a factorisation's
@@ -139,7 +144,6 @@ class SparseSolver:
         if self._pardiso is not None:
             self._pardiso.free_memory(everything=True)
             self._pardiso = None
-        self._pattern_key = None
         self.forget()
 
     def __enter__(self) -> "SparseSolver":

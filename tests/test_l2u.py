@@ -167,3 +167,20 @@ def test_imported_cases_keep_their_own_ed_geometry(store):
     g = build_graphs(cases, [key], bundle_norm)[0]
     np.testing.assert_allclose(g.x.numpy(), bundle_norm.coords(case.loaded, cases.features[key[0]].base_nodes), atol=1e-5)
     np.testing.assert_allclose(g.y.numpy(), (case.unloaded - case.loaded) / 2.0, atol=1e-5)
+
+
+def test_inverse_fe_from_a_network_guess_that_fails_at_full_load_restarts_cleanly():
+    """A tiny network's unloaded guess for ED59 (P 10 mmHg, C 150 Pa; tests/data, mm) is a valid mesh,
+    but Newton at full load from it fails, and the load-stepping restart from zero strain then
+    collapsed at 0 % of the load: PARDISO reused the scaling and matching of the failed attempt's
+    tangent (`unload --method hybrid` exit 1 where `--method fe` converged). The restart reanalyses."""
+    from solver.lv import inverse_solve
+    from solver.parameters import CaseParameters
+    from storage.meshfiles import read_mesh
+
+    mesh = read_mesh(FIXTURES / "ED59_10_150_60_60.vtu", "cm")
+    guess = np.load(Path(__file__).parent / "data" / "ED59_network_guess_mm.npy")
+    result = inverse_solve(mesh, CaseParameters(10.0, 150.0, 60.0, -60.0), "fast", initial_unloaded=guess)
+    assert result.mismatch_mm <= 1e-4
+    plain = inverse_solve(mesh, CaseParameters(10.0, 150.0, 60.0, -60.0), "fast")
+    assert np.abs(result.unloaded_nodes - plain.unloaded_nodes).max() < 0.05

@@ -110,6 +110,29 @@ def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
     assert (seen["guess"] is None) == out["fallback"]
 
 
+def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(trained, monkeypatch):
+    """A valid guess from which inverse FE fails: hybrid solves again from the ED mesh (never worse
+    than --method fe), says so in a warning, and reports the fallback."""
+    import solver.lv
+    from solver.forward import SolveError
+    from solver.parameters import CaseParameters
+    from trainer.predict import unload_with_network
+
+    calls = []
+
+    def inverse_failing_from_a_guess(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None,
+                                     fibres="laplace"):
+        calls.append(initial_unloaded is not None)
+        if initial_unloaded is not None:
+            raise SolveError("step size collapsed at 0.0% of load")
+        return type("R", (), {"unloaded_nodes": mesh.nodes.copy()})()
+
+    monkeypatch.setattr(solver.lv, "inverse_solve", inverse_failing_from_a_guess)
+    out = unload_with_network(lv_mesh(0), CaseParameters(8.0, 100.0, 60.0, -60.0), trained["run"], "hybrid", "fast")
+    assert calls == [True, False] and out["fallback"]
+    assert any("did not converge" in w and "started again from the ED mesh" in w for w in out["warnings"])
+
+
 def test_bad_checkpoint_and_run_dirs(trained, tmp_path):
     bad = tmp_path / "bad_run"
     bad.mkdir()

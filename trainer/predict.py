@@ -276,6 +276,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
             out["warnings"].append(f"the predicted unloaded mesh is not valid ({exc}); use --method hybrid")
         out["unloaded_nodes"] = guess
         return out
+    from solver.forward import SolveError
     from solver.lv import inverse_solve
     from solver.mesh import MeshError, check_geometry
 
@@ -285,8 +286,17 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     except MeshError as exc:
         out["warnings"].append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
         fallback = True
-    result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess, tol_mm=tol_mm,
-                           fibres=fibres)
+    try:
+        result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess,
+                               tol_mm=tol_mm, fibres=fibres)
+    except SolveError as exc:
+        if fallback:
+            raise
+        # the guess is a valid mesh from which inverse FE did not converge: hybrid is never worse than fe
+        out["warnings"].append(f"inverse FE from the network guess did not converge "
+                               f"({str(exc).splitlines()[0][:100]}); it started again from the ED mesh")
+        fallback = True
+        result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=tol_mm, fibres=fibres)
     out.update({"unloaded_nodes": result.unloaded_nodes, "inverse": result, "fallback": fallback,
                 "guess_error_mm": float(np.linalg.norm(guess - result.unloaded_nodes, axis=1).max())})
     return out
