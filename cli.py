@@ -100,6 +100,10 @@ RotateDegOpt = typer.Option(0.0, "--rotate-deg", help="Augment: turn each traini
                                                       "random angle in ±DEG (exact new FE pairs; 0 = off).")
 ScalePctOpt = typer.Option(0.0, "--scale-pct", help="Augment: scale each training graph about its base by a random "
                                                     "factor in 1 ± PCT/100 (exact new FE pairs; 0 = off).")
+# every name in trainer.config.NAMED_CONFIGS (tested; cli.py does not import the trainer, so --help stays light)
+CONFIG_HELP = ("Model: paper | multitoken | A1 A2 A3 A4 A5 | C0 C2 C5 C6 | R1 R2 R3 R4 R5 | A1ema | A1ema-wall "
+               "A1ema-wall-d0 A1ema-wall-d0-load | A1ema-resp-d0 (our best) A1ema-resp-d0-load A1ema-resp-d0-gcn "
+               "R5-resp-d0 | pca (README: Configurations).")
 LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve the rate after 10 epochs without a better "
                                                               "validation loss: the paper) | cosine (anneal towards 1 % "
                                                               "of --lr over --epochs, set per epoch).")
@@ -108,9 +112,10 @@ LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve th
 @app.command()
 def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-in shape model (≥ 0)."),
          out: Path = typer.Option(..., "-o", "--out", help="Output mesh file (.vtu or .vtk)."),
-         nodes: int = typer.Option(800, "--nodes", help="Target node count (default 600–1000 nodes)."),
+         nodes: int = typer.Option(800, "--nodes", help="Target node count (gmsh lands within ~15 % of it)."),
          seed: int = typer.Option(0, "--seed", help="Shape-model seed."),
-         endo: float = EndoOpt, epi: float = EpiOpt, units: Units = UnitsOpt):
+         endo: float = EndoOpt, epi: float = EpiOpt,
+         units: Units = typer.Option(Units.mm, "--units", help="Length unit of the written mesh.")):
     """Write the ED mesh of a shape-model member with surface tags and fibre fields."""
     from solver.fibres import fibre_frames, helix_angle_at_nodes, transmural_coordinate
     from solver.meshing import mesh_lv
@@ -484,7 +489,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           run_dir: Path = typer.Option(..., "--run-dir", help="Run directory: checkpoint.pt, metrics.csv, Ray storage; "
                                                                "reusing it resumes the run."),
           gpus: int = typer.Option(0, "--gpus", help="GPU workers (DDP over NCCL); 0 = CPU workers with gloo."),
-          config: str = typer.Option("paper", "--config", help="Model: paper | multitoken | A1–A5 | C0 C2 C5 C6 | R1–R5 | A1ema | pca."),
+          config: str = typer.Option("paper", "--config", help=CONFIG_HELP),
           epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
           batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
           sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),
@@ -536,19 +541,18 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
 
         if not is_url(store):  # Ray Train workers run in their own working directory
             store = str(Path(store).resolve())
-        run_dir = run_dir.resolve()
+        shown_dir, run_dir = run_dir, run_dir.resolve()  # the user's spelling in the last line
         cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
                           train_fraction=train_fraction, labelled_share=labelled_share, seed=seed, split_seed=split_seed,
                           label_seed=label_seed, rotate_deg=rotate_deg, scale_pct=scale_pct, epochs=epochs if epochs is not None else (5 if local else 500),
                           batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, patience=patience, bf16=bf16)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")
-        if not run_dir.parent.exists():
-            raise TrainerError(f"folder {run_dir.parent} does not exist")
-        if not os.access(run_dir if run_dir.is_dir() else run_dir.parent, os.W_OK | os.X_OK):
-            raise TrainerError(f"--run-dir {run_dir}: the folder is not writable")
-        if run_dir.exists() and not run_dir.is_dir():
-            raise TrainerError(f"--run-dir {run_dir} is a file")
+        nearest = next(p for p in (run_dir, *run_dir.parents) if p.exists())  # made with its parents when training starts
+        if not nearest.is_dir():
+            raise TrainerError(f"--run-dir {run_dir}: {nearest} is a file")
+        if not os.access(nearest, os.W_OK | os.X_OK):
+            raise TrainerError(f"--run-dir {run_dir}: the folder {nearest} is not writable")
         ckpt = run_checkpoint_path(run_dir)
         if ckpt.is_file():  # refused here, before Ray starts (whose workers would retry a refusal)
             state = load_checkpoint(ckpt)
@@ -631,7 +635,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                   else "no validation cases" + (f", kept epoch {summary['best_epoch']} (lowest training loss)"
                                                 if model.kind != "pca" else ""))
                + (", stopped early" if summary.get("stopped_early") else "")
-               + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir}/checkpoint.pt")
+               + f"; {summary.get('n_parameters') or 0:,} parameters → {shown_dir / 'checkpoint.pt'}")
 
 
 @app.command()
@@ -857,7 +861,7 @@ def _print_ablation_seeds(result: dict, root: Path) -> None:
 @bench_app.command("learning-curve")
 def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs."),
                              root: Path = typer.Option(..., "--root", help="Folder for one run directory per fraction."),
-                             config: str = typer.Option("paper", "--config", help="Configuration to train."),
+                             config: str = typer.Option("paper", "--config", help=CONFIG_HELP),
                              fractions: str = typer.Option("0.25,0.5,1", "--fractions",
                                                            help="Comma-separated fractions of the training shapes."),
                              epochs: int = typer.Option(30, "--epochs", help="Max epochs per fraction."),

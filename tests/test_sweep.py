@@ -46,12 +46,15 @@ def _stats(location, shape=0):
 
 
 def test_local_ray_workers_are_not_niced(ray_cluster):
-    """Ray's default nice 15 let any other busy process starve the solves ~20× (README)."""
+    """Ray's default nice 15 let any other busy process starve the solves ~20× (README). Ray sets a
+    worker's niceness relative to the process that started it, so under `nice make test` the workers
+    share the driver's niceness (the README's advice for letting generation yield)."""
     import ray
 
     from orchestrator.sweep import WORKER_NICENESS
 
-    assert ray.get(ray.remote(num_cpus=1)(lambda: os.nice(0)).remote()) == WORKER_NICENESS == 0
+    assert ray.get(ray.remote(num_cpus=1)(lambda: os.nice(0)).remote()) == os.nice(0) + WORKER_NICENESS
+    assert WORKER_NICENESS == 0
 
 
 def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_path):

@@ -133,6 +133,19 @@ def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(t
     assert any("did not converge" in w and "started again from the ED mesh" in w for w in out["warnings"])
 
 
+def test_train_makes_the_run_dirs_folders(trained, tmp_path):
+    """`--run-dir runs/cpu` in a fresh clone (no runs/ yet) trains (the README's examples); a run
+    directory under a file is refused in one line, with nothing made."""
+    r = run("train", "--store", trained["store"], "--run-dir", tmp_path / "runs" / "new" / "cpu", "--no-ray",
+            "--epochs", 1, "--batch-size", 8, "--device", "cpu")
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "runs" / "new" / "cpu" / "checkpoint.pt").is_file()
+    (tmp_path / "a_file").write_text("x")
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "a_file" / "r", "--no-ray"),
+                     "is a file")
+    assert not (tmp_path / "a_file").is_dir()
+
+
 def test_bad_checkpoint_and_run_dirs(trained, tmp_path):
     bad = tmp_path / "bad_run"
     bad.mkdir()
@@ -552,3 +565,14 @@ def test_sigterm_stops_training_like_ctrl_c(trained, tmp_path):
     errors = [ln for ln in err.splitlines() if ln.startswith("heartctl: error:")]
     assert len(errors) == 1 and "interrupted" in errors[0] and "Traceback" not in err
     assert load_run(run_dir)["epoch"] >= 1  # epoch 2 may have been cut short while saving
+
+
+def test_train_help_names_every_configuration():
+    """`train --help` lists every --config name (the README's recommended ones were missing)."""
+    import re
+
+    from cli import CONFIG_HELP
+    from trainer.config import NAMED_CONFIGS
+
+    named = set(re.findall(r"[A-Za-z][\w-]*", CONFIG_HELP.split("(README")[0].removeprefix("Model:")))
+    assert set(NAMED_CONFIGS) <= named and named - set(NAMED_CONFIGS) <= {"our", "best"}
