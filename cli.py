@@ -1131,7 +1131,8 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     thr = s["throughput_cases_per_s"]
     lr = s["last_run"] or {}
     con.print(f"throughput (run {lr.get('index', '—')}, {lr.get('done_in_run', 0)} done"
-              f"{'' if not lr else ', finished' if lr.get('ended') else _run_state(s['writer'], is_url(store))}): "
+              f"{'' if not lr else ', finished' if lr.get('ended') else _run_state(s['writer'], is_url(store))}"
+              f"{'; over its whole wall time, meshing included' if lr else ''}): "
               + (f"{thr:.3f} cases/s ({thr * 3600:.0f}/h)" if thr else "—")
               + f"; ETA {_fmt_s(s['eta_s'])}"
               + (f"; store {s['store_bytes'] / 1e6:.1f} MB" if s.get("store_bytes") is not None else ""))
