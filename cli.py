@@ -478,7 +478,9 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
         return
     inv = result["inverse"]
     typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms"
-               f"{', guess unusable' if result['fallback'] else ''}, then {fidelity} inverse FE): {inv.updates} updates, "
+               f"{', guess unusable' if result['fallback'] else ''}"
+               f"{f' after {g:.1f} s of inverse FE from it' if (g := result.get('guess_attempt_s')) else ''}"
+               f", then {fidelity} inverse FE): {inv.updates} updates, "
                f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
                f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; "
                f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")

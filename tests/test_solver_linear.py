@@ -141,3 +141,31 @@ def test_linear_response_refuses_an_answer_that_does_not_solve_its_system(monkey
     monkeypatch.setattr(SparseSolver, "solve", lambda self, A, b: np.full(b.shape, 2.5e12))
     with pytest.raises(SolveError, match="singular tangent"):
         linear_response(mesh, params)
+
+
+@pytest.mark.skipif("pardiso" not in available_backends(), reason="needs pypardiso")
+def test_a_forgotten_factorisation_is_analysed_again(monkeypatch):
+    """PARDISO's analysis (phase 11: ordering, scaling, weighted matching, which depend on the values)
+    runs once per pattern while Newton goes well, and again after forget() (a failed solve): a restart
+    must not factorise with the analysis of the failed attempt's tangent (a load-stepping restart
+    collapsed at 0 % of the load that way; tests/test_l2u.py has the real case)."""
+    A = _laplacian_3d(6)
+    b = np.ones(A.shape[0])
+    s = SparseSolver("pardiso")
+    phases = []
+    s.factorize(A)
+    call = s._pardiso._call_pardiso
+
+    def spy(M, rhs):
+        phases.append(s._pardiso.phase)
+        return call(M, rhs)
+
+    monkeypatch.setattr(s._pardiso, "_call_pardiso", spy)
+    s.factorize(A * 2.0)
+    x = s.solve_factored(b)
+    s.forget()
+    s.factorize(A * 3.0)
+    s.factorize(A * 4.0)
+    assert phases == [22, 33, 11, 22, 22]
+    assert np.allclose((A * 2.0) @ x, b)
+    s.free()

@@ -350,12 +350,15 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
         ray.shutdown()
 
 
-def _refusal_rank(rank: int, world: int, port: int, out) -> None:
+def _refusal_rank(rank: int, world: int, rendezvous: str, out) -> None:
+    from datetime import timedelta
+
     import torch.distributed as tdist
 
     from trainer.ray_train import agreed_refusal
 
-    tdist.init_process_group("gloo", init_method=f"tcp://127.0.0.1:{port}", rank=rank, world_size=world)
+    tdist.init_process_group("gloo", init_method=f"file://{rendezvous}", rank=rank, world_size=world,
+                             timeout=timedelta(seconds=60))
     try:
         own = "cannot read store s.zarr (rank 1)" if rank == 1 else None
         out.put((rank, agreed_refusal(own, world, torch.device("cpu")), agreed_refusal(None, world, torch.device("cpu"))))
@@ -363,24 +366,24 @@ def _refusal_rank(rank: int, world: int, port: int, out) -> None:
         tdist.destroy_process_group()
 
 
-def test_a_refusal_on_one_rank_stops_every_rank():
+def test_a_refusal_on_one_rank_stops_every_rank(tmp_path):
     """Only rank 1 cannot read the store: every rank gets its message (a collective, so rank 0 does not
     wait for ever in DDP's first broadcast), and with no refusal every rank trains."""
-    import socket
-
     import torch.multiprocessing as mp
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
-    procs = [ctx.Process(target=_refusal_rank, args=(r, 2, port, out)) for r in range(2)]
-    for p in procs:
-        p.start()
-    got = sorted(out.get(timeout=120) for _ in procs)
-    for p in procs:
-        p.join(30)
+    procs = [ctx.Process(target=_refusal_rank, args=(r, 2, str(tmp_path / "rendezvous"), out), daemon=True)
+             for r in range(2)]
+    try:
+        for p in procs:
+            p.start()
+        got = sorted(out.get(timeout=120) for _ in procs)
+    finally:
+        for p in procs:
+            p.join(30)
+            if p.is_alive():
+                p.terminate()
     assert got == [(0, "cannot read store s.zarr (rank 1)", None), (1, "cannot read store s.zarr (rank 1)", None)]
 
 

@@ -286,6 +286,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     except MeshError as exc:
         out["warnings"].append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
         fallback = True
+    t = time.perf_counter()
     try:
         result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess,
                                tol_mm=tol_mm, fibres=fibres)
@@ -293,10 +294,15 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
         if fallback:
             raise
         # the guess is a valid mesh from which inverse FE did not converge: hybrid is never worse than fe
-        out["warnings"].append(f"inverse FE from the network guess did not converge "
-                               f"({str(exc).splitlines()[0][:100]}); it started again from the ED mesh")
+        out["guess_attempt_s"] = time.perf_counter() - t
+        reason = str(exc).splitlines()[0][:100]
+        out["warnings"].append(f"inverse FE from the network guess did not converge in "
+                               f"{out['guess_attempt_s']:.1f} s ({reason}); it started again from the ED mesh")
         fallback = True
-        result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=tol_mm, fibres=fibres)
+        try:
+            result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=tol_mm, fibres=fibres)
+        except SolveError as again:
+            raise SolveError(f"{again} (from the network guess before: {reason})") from None
     out.update({"unloaded_nodes": result.unloaded_nodes, "inverse": result, "fallback": fallback,
                 "guess_error_mm": float(np.linalg.norm(guess - result.unloaded_nodes, axis=1).max())})
     return out

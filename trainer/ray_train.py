@@ -82,9 +82,9 @@ def worker_data(cfg: TrainConfig, rank: int, host: str, same_host: bool):
 
     try:
         return training_data(cfg), None
-    except (TrainerError, StoreError) as exc:
+    except (TrainerError, StoreError, OSError) as exc:  # OSError: a folder this worker's user cannot list
         where = f"Ray worker {rank} on {host}"
-        if isinstance(exc, StoreError) and not same_host and not is_url(cfg.store):
+        if not isinstance(exc, TrainerError) and not same_host and not is_url(cfg.store):
             where += ", not the driver's machine: every worker must reach the store at the same path (a shared " \
                      "filesystem) or read it from s3://"
         return None, f"{exc} ({where})"
