@@ -477,9 +477,11 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
                    f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
         return
     inv = result["inverse"]
-    typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms"
-               f"{', guess unusable' if result['fallback'] else ''}"
-               f"{f' after {g:.1f} s of inverse FE from it' if (g := result.get('guess_attempt_s')) else ''}"
+    dropped = ""
+    if result["fallback"]:
+        lost = result.get("guess_attempt_s")
+        dropped = ", guess unusable" + (f" after {lost:.1f} s of inverse FE from it" if lost is not None else "")
+    typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms{dropped}"
                f", then {fidelity} inverse FE): {inv.updates} updates, "
                f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
                f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; "

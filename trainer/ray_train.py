@@ -135,13 +135,16 @@ def _train_worker(config: dict) -> None:
             shutil.rmtree(path.parent, ignore_errors=True)
         return pick_resume_state(candidates)
 
-    def report(metrics: dict, state: dict | None) -> None:
-        if state is None:
+    def report_with(metrics: dict, write=None) -> None:  # write(folder) fills the reported checkpoint
+        if write is None:
             ray.train.report(metrics)
             return
         with tempfile.TemporaryDirectory() as tmp:
-            save_checkpoint(Path(tmp) / CHECKPOINT_NAME, state)
+            write(Path(tmp))
             ray.train.report(metrics, checkpoint=ray.train.Checkpoint.from_directory(tmp))
+
+    def report(metrics: dict, state: dict | None) -> None:
+        report_with(metrics, None if state is None else lambda d: save_checkpoint(d / CHECKPOINT_NAME, state))
 
     def log(line: str) -> None:  # once (Ray Train's patched print would also echo it through logging)
         sys.__stdout__.write(line + "\n")
@@ -150,13 +153,8 @@ def _train_worker(config: dict) -> None:
     quieten_checkpoint_reports()
 
     def refuse(message: str) -> None:  # on every rank at once; rank 0 reports the marker checkpoint
-        metrics = {REFUSED: message, "heartctl_call": config["call"]}
-        if rank != 0:
-            ray.train.report(metrics)
-            return
-        with tempfile.TemporaryDirectory() as tmp:
-            (Path(tmp) / REFUSED_FILE).write_text(message)
-            ray.train.report(metrics, checkpoint=ray.train.Checkpoint.from_directory(tmp))
+        report_with({REFUSED: message, "heartctl_call": config["call"]},
+                    (lambda d: (d / REFUSED_FILE).write_text(message)) if rank == 0 else None)
 
     dist = Dist(rank=rank, world=world, device=device, wrap_model=ray.train.torch.prepare_model, restore=restore,
                 report=report, log=log, write_local=same_host)
