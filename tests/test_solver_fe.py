@@ -177,6 +177,18 @@ def test_heartfem_base_removes_rigid_motion_over_the_wall(coarse_lv):
     assert np.abs(result.displacement).max() > 1.0  # it did inflate
 
 
+def test_inverse_with_heartfem_fibres_and_base_converges():
+    """heartFEM's set-up (its fibre rule and base) on the case where inverse FE used to stall at
+    1.0e-3 mm for 60 updates (`generate --local --fibres heartfem --base heartfem`, shape 0, case 0):
+    its epicardial normal jumped where a quadrature point was equidistant from two faces."""
+    mesh = mesh_lv(lv_shape(0), 350)
+    params = CaseParameters(8.0, 100.0, 60.0, -60.0)
+    result = inverse_solve(mesh, params, "fast", "heartfem", fibres="heartfem")
+    assert result.mismatch_mm <= 1e-4 and result.updates <= 20  # measured 8 updates
+    forward = forward_solve(mesh.with_nodes(result.unloaded_nodes), params, "fast", "heartfem", fibres="heartfem")
+    assert np.linalg.norm(forward.loaded_nodes - mesh.nodes, axis=1).max() < 1e-3
+
+
 def test_unloading_is_equivariant_under_rotation_about_the_long_axis(coarse_lv):
     """What trainer.augment relies on: turning the ED mesh about a line parallel to z turns its
     unloaded geometry the same way (sliding base, in-plane gauge, fibres from geometry and e_z)."""

@@ -125,6 +125,28 @@ def test_closest_points_on_triangles_match_dense_sampling():
     assert np.all(np.linalg.norm(got - pts, axis=1) <= brute + 1e-12)
 
 
+def test_surface_normal_is_continuous_where_two_faces_are_equidistant():
+    """Inside a convex faceted surface (a wall point under the epicardium) the closest point jumps
+    from one face to the other where the two are equidistant. The blended normal does not jump
+    there (it did: 0.03 on a generated LV, and inverse FE with heartFEM's fibres stalled at ~1e-3 mm),
+    and away from the tie it is the closest face's interpolated normal."""
+    from solver.fibres import surface_distance
+
+    # a roof over the point: two faces meeting at the ridge x = 0, wound so that their normals point up
+    nodes = np.array([[0.0, -1, 0], [0.0, 1, 0], [-1.0, 0, -0.5], [1.0, 0, -0.5]])
+    tris = np.array([[0, 1, 2], [1, 0, 3]])
+    a, b, c = (nodes[tris][:, i] for i in range(3))
+    assert np.all(np.cross(b - a, c - a)[:, 2] > 0)
+    eps = 1e-7
+    pts = np.array([[-eps, 0.0, -1.0], [eps, 0.0, -1.0], [-0.3, 0.0, -1.0]])
+    d, n = surface_distance(pts, nodes, tris)
+    assert abs(d[0] - d[1]) < 1e-6
+    assert np.linalg.norm(n[0] - n[1]) < 1e-4  # continuous across the tie
+    _, n_sharp = surface_distance(pts, nodes, tris, blend_fraction=0.0)
+    assert np.linalg.norm(n_sharp[0] - n_sharp[1]) > 1e-2  # the closest face alone jumps
+    np.testing.assert_allclose(n[2], n_sharp[2], atol=1e-12)  # far from the tie: unchanged
+
+
 def test_heartfem_frames_orthonormal_and_transmural(default_mesh):
     """heartFEM's rule: orthonormal (f, s, n); s points endo → epi (away from the long axis on the
     free wall); helix angles stay within the endo/epi range and reach both signs; at points next
