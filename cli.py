@@ -27,6 +27,11 @@ class FidelityName(str, Enum):
     accurate = "accurate"
 
 
+class Direction(str, Enum):
+    forward = "forward"
+    inverse = "inverse"
+
+
 class Base(str, Enum):
     sliding = "sliding"
     clamped = "clamped"
@@ -380,8 +385,10 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
               stiffness_factor: float = typer.Option(2.0, "--stiffness-factor", help="Multiply their C: 2 (default) because heartFEM writes W = C (e^Q − 1), we W = C/2 (e^Q − 1); 1 takes C as named."),
               fibres: str = typer.Option("heartfem", "--fibres", help="Fibre rule: heartfem (theirs, default) | laplace (ours)."),
               quad_degree: int = typer.Option(4, "--quad-degree", help="Cell quadrature degree (heartFEM: 4; 0 = the preset's own)."),
+              direction: Direction = typer.Option(Direction.forward, "--direction", help="forward: inflate their unloaded meshes, compare with their ED meshes; inverse: unload their ED meshes (inverse FE), compare with their unloaded meshes."),
               as_json: bool = typer.Option(False, "--json")):
-    """Forward-solve their unloaded meshes with their parameters; mismatch to their ED meshes.
+    """Forward-solve their unloaded meshes with their parameters; mismatch to their ED meshes
+    (--direction inverse: unload their ED meshes; mismatch to their unloaded meshes).
     The defaults follow their pipeline (spring base, their C convention and fibre rule, degree 4)."""
     from orchestrator.l2u_check import run_l2u_check
     from storage.store import StoreError
@@ -392,14 +399,16 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
         _check_fibres(fibres)
         if not 0 <= quad_degree <= 6:
             raise ValueError(f"--quad-degree must be 1–6 (0: the preset's), got {quad_degree}")
-        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor, fibres, quad_degree or None)
+        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor, fibres, quad_degree or None,
+                               direction.value)
     except (StoreError, ValueError) as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json_line({k: v for k, v in result.items() if k != "rows"}))
         return
     o = result["overall"]
-    typer.echo(f"{result['solved']}/{result['cases']} pairs solved ({fidelity.value}, base {base.value}, "
+    what = "ED meshes unloaded" if direction is Direction.inverse else "unloaded meshes inflated"
+    typer.echo(f"{result['solved']}/{result['cases']} of their {what} ({fidelity.value}, base {base.value}, "
                f"C × {stiffness_factor:g}, {fibres} fibres, quadrature degree {result['quad_degree']})")
     for r in result["rows"]:
         if r["ok"]:

@@ -1,6 +1,7 @@
 """`heartctl bench l2u`: forward-solve the original dataset's unloaded meshes with their own
 parameters using our solver, and compare with their ED meshes (mm, and as a fraction of the mean
-loading displacement), per parameter value and overall."""
+loading displacement), per parameter value and overall; or, in the inverse direction, unload their
+ED meshes and compare with their unloaded meshes."""
 from __future__ import annotations
 
 import time
@@ -11,15 +12,23 @@ import numpy as np
 
 from solver.fidelity import Fidelity, get_fidelity
 from solver.forward import SolveError
-from solver.lv import forward_solve
+from solver.lv import forward_solve, inverse_solve
 from solver.parameters import CaseParameters
 from storage.store import PARAM_NAMES, PairReader
 
 
+DIRECTIONS = ("forward", "inverse")
+
+
 def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | str, base: str,
-               stiffness_factor: float = 1.0, fibres: str = "laplace") -> dict:
+               stiffness_factor: float = 1.0, fibres: str = "laplace", direction: str = "forward") -> dict:
     """One pair; `stiffness_factor` multiplies their C (their heartFEM code writes W = C (e^Q − 1),
-    ours W = C/2 (e^Q − 1): 2 makes the laws equal); `fibres` is the fibre rule."""
+    ours W = C/2 (e^Q − 1): 2 makes the laws equal); `fibres` is the fibre rule. direction "forward":
+    inflate their unloaded mesh, compare with their ED mesh; "inverse": unload their ED mesh (inverse
+    FE), compare with their unloaded mesh. Either way `mismatch_*` is the nodal distance to their
+    geometry and `ours_loading_mean_mm` the mean distance between our two geometries."""
+    if direction not in DIRECTIONS:
+        raise ValueError(f"direction must be forward or inverse, got {direction!r}")
     case = reader.case(shape_id, k)
     mesh = reader.mesh(shape_id)
     unloaded = case.unloaded.astype(float)
@@ -32,13 +41,18 @@ def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | s
     row["loading_mean_mm"] = float(loading.mean())
     t0 = time.perf_counter()
     try:
-        ours = forward_solve(mesh.with_nodes(unloaded), params, fidelity, base, fibres=fibres).loaded_nodes
+        if direction == "forward":
+            ours, theirs, start = forward_solve(mesh.with_nodes(unloaded), params, fidelity, base,
+                                                fibres=fibres).loaded_nodes, ed, unloaded
+        else:
+            ours, theirs, start = inverse_solve(mesh.with_nodes(ed), params, fidelity, base,
+                                                fibres=fibres).unloaded_nodes, unloaded, ed
     except SolveError as exc:
         row.update(ok=False, reason=str(exc), wall_s=time.perf_counter() - t0)
         return row
-    gap = np.linalg.norm(ours - ed, axis=1)
-    aligned = np.linalg.norm(align_in_plane(ours, ed) - ed, axis=1)
-    ours_disp = np.linalg.norm(ours - unloaded, axis=1)
+    gap = np.linalg.norm(ours - theirs, axis=1)
+    aligned = np.linalg.norm(align_in_plane(ours, theirs) - theirs, axis=1)
+    ours_disp = np.linalg.norm(ours - start, axis=1)
     row.update(ok=True, wall_s=time.perf_counter() - t0, mismatch_mean_mm=float(gap.mean()),
                mismatch_max_mm=float(gap.max()), ours_loading_mean_mm=float(ours_disp.mean()),
                relative=float(gap.mean() / loading.mean()), aligned_mean_mm=float(aligned.mean()),
@@ -59,7 +73,8 @@ def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None,
-                  stiffness_factor: float = 1.0, fibres: str = "laplace", quad_degree: int | None = None) -> dict:
+                  stiffness_factor: float = 1.0, fibres: str = "laplace", quad_degree: int | None = None,
+                  direction: str = "forward") -> dict:
     """`quad_degree` overrides the preset's cell quadrature (heartFEM integrates, and places its
     fibres, at degree 4)."""
     reader = PairReader(location)
@@ -67,7 +82,7 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
     fid = get_fidelity(fidelity)
     if quad_degree is not None:
         fid = replace(fid, quad_degree=quad_degree)
-    rows = [check_case(reader, s, k, fid, base, stiffness_factor, fibres) for s, k in keys]
+    rows = [check_case(reader, s, k, fid, base, stiffness_factor, fibres, direction) for s, k in keys]
     ok = [r for r in rows if r["ok"]]
     by_param = {}
     for name in PARAM_NAMES:
@@ -75,7 +90,7 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
         for r in ok:
             groups[r[name]].append(r)
         by_param[name] = {v: _summary(g) for v, g in sorted(groups.items())}
-    return {"fidelity": fidelity, "base": base, "stiffness_factor": stiffness_factor, "fibres": fibres,
+    return {"direction": direction, "fidelity": fidelity, "base": base, "stiffness_factor": stiffness_factor, "fibres": fibres,
             "quad_degree": fid.quad_degree, "cases": len(rows), "solved": len(ok),
             "failed": [r for r in rows if not r["ok"]], "overall": _summary(ok), "by_parameter": by_param,
             "rows": rows}

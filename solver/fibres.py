@@ -102,7 +102,7 @@ def helix_angle_at_nodes(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: fl
 # --------------------------------------------------------------------------- heartFEM's rule
 # The original dataset's pipeline (heartFEM's vtk_py: addLocalProlateSpheroidalDirections and
 # addLocalFiberOrientation) builds the frame at each quadrature point from the closest points on
-# the endo- and epicardial surfaces (both clipped 0.05 cm below the base) instead of a Laplace
+# the endo- and epicardial surfaces (both cut 0.05 cm below the base, as vtkClipPolyData cuts them) instead of a Laplace
 # solve. Its transmural coordinate is d = d_endo² / (d_endo² + d_epi²): vtkCellLocator's
 # FindClosestPoint returns the *squared* distance, which that code divides as if it were the
 # distance. The transmural direction is t = unit(−(1 − d) N_endo + d N_epi) with the surface
@@ -197,10 +197,51 @@ def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> 
     return np.clip(np.stack([1.0 - v - w, v, w], axis=1), 0.0, 1.0)
 
 
-def _clipped(mesh: TetMesh, triangles: np.ndarray, clip_mm: float) -> np.ndarray:
-    """The triangles whose centroids lie more than clip_mm below the base (the highest node)."""
-    keep = mesh.nodes[triangles][:, :, 2].mean(axis=1) < mesh.nodes[:, 2].max() - clip_mm
-    return triangles[keep] if keep.any() else triangles
+def clip_below(nodes: np.ndarray, triangles: np.ndarray, height: float):
+    """The part of a triangulated surface below z = height, cut along the plane as VTK's
+    vtkClipPolyData cuts it (heartFEM clips its surfaces so): triangles wholly below are kept, those
+    wholly above dropped, and a triangle the plane crosses is cut at the plane (a triangle or a
+    quadrilateral split in two, winding kept). A cut edge's point is shared by both of its triangles.
+    The cut surface moves continuously with the nodes, where dropping whole triangles would jump.
+    Returns (points [p, 3], triangles [t, 3]); the first len(nodes) points are the nodes."""
+    below = nodes[:, 2] < height
+    inside = below[triangles]
+    n_in = inside.sum(axis=1)
+    kept = [triangles[n_in == 3]]
+    cut = triangles[(n_in == 1) | (n_in == 2)]
+    if len(cut) == 0:
+        return nodes, kept[0]
+    # rotate each cut triangle (keeping its winding) so that it starts at its lone vertex: the one
+    # below the plane when one is below, the one above when two are
+    lone = np.where(inside[(n_in == 1) | (n_in == 2)].sum(axis=1, keepdims=True) == 1,
+                    inside[(n_in == 1) | (n_in == 2)], ~inside[(n_in == 1) | (n_in == 2)])
+    shift = lone.argmax(axis=1)
+    idx = (shift[:, None] + np.arange(3)[None, :]) % 3
+    a, b, c = (np.take_along_axis(cut, idx, axis=1)[:, i] for i in range(3))
+    one_below = below[a]
+    edges = np.concatenate([np.stack([a, b], 1), np.stack([a, c], 1)])
+    keys, inverse = np.unique(np.sort(edges, axis=1), axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    za, zb = nodes[keys[:, 0], 2], nodes[keys[:, 1], 2]
+    t = (height - za) / (zb - za)
+    points = np.concatenate([nodes, nodes[keys[:, 0]] + t[:, None] * (nodes[keys[:, 1]] - nodes[keys[:, 0]])])
+    p_ab = len(nodes) + inverse[: len(a)]
+    p_ac = len(nodes) + inverse[len(a):]
+    kept.append(np.stack([a, p_ab, p_ac], 1)[one_below])  # the lone vertex's corner
+    two = ~one_below  # b and c below: the quadrilateral p_ab, b, c, p_ac
+    kept.append(np.stack([p_ab, b, c], 1)[two])
+    kept.append(np.stack([p_ab, c, p_ac], 1)[two])
+    tris = np.concatenate(kept)
+    e1, e2 = points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]]
+    area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
+    return points, tris[area2 > 1e-12 * max(float(area2.max(initial=0.0)), 1e-300)]  # a node on the plane leaves slivers
+
+
+def _clipped_surface(mesh: TetMesh, triangles: np.ndarray, clip_mm: float):
+    """A surface of the mesh cut clip_mm below its base (the highest node), as heartFEM clips it;
+    the whole surface if nothing of it lies below."""
+    points, tris = clip_below(mesh.nodes, triangles, mesh.nodes[:, 2].max() - clip_mm)
+    return (points, tris) if len(tris) else (mesh.nodes, triangles)
 
 
 def heartfem_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam: np.ndarray,
@@ -208,8 +249,8 @@ def heartfem_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, 
     """(f, s, n) frames [m, nq, 3, 3] at quadrature points by heartFEM's rule (see above); mm."""
     x = np.einsum("eai,aq->eqi", mesh.nodes[mesh.tets], lam).reshape(-1, 3)
     # TetMesh keeps its surface triangles wound out of the wall, so the normals need no fixing
-    d_endo, n_endo = surface_distance(x, mesh.nodes, _clipped(mesh, mesh.endo, clip_mm))
-    d_epi, n_epi = surface_distance(x, mesh.nodes, _clipped(mesh, mesh.epi, clip_mm))
+    d_endo, n_endo = surface_distance(x, *_clipped_surface(mesh, mesh.endo, clip_mm))
+    d_epi, n_epi = surface_distance(x, *_clipped_surface(mesh, mesh.epi, clip_mm))
     d = d_endo ** 2 / np.maximum(d_endo ** 2 + d_epi ** 2, 1e-300)  # squared, as heartFEM computes it
     t = -(1.0 - d)[:, None] * n_endo + d[:, None] * n_epi  # out of the wall: −N_endo and N_epi point endo → epi
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-300)

@@ -147,6 +147,34 @@ def test_surface_normal_is_continuous_where_two_faces_are_equidistant():
     np.testing.assert_allclose(n[2], n_sharp[2], atol=1e-12)  # far from the tie: unchanged
 
 
+def test_surface_clipped_at_the_base_is_cut_along_the_plane(default_mesh):
+    """heartFEM's surfaces are cut 0.05 cm below the base as vtkClipPolyData cuts them: everything kept
+    lies below the plane, the kept area changes continuously as the plane passes a node (dropping
+    whole triangles by their centroids jumped), the winding is kept, and the cut rim is one loop."""
+    from solver.fibres import clip_below
+
+    m = default_mesh
+
+    def area(points, tris):
+        return 0.5 * np.linalg.norm(np.cross(points[tris[:, 1]] - points[tris[:, 0]],
+                                             points[tris[:, 2]] - points[tris[:, 0]]), axis=1).sum()
+
+    total = area(m.nodes, m.epi)
+    points, tris = clip_below(m.nodes, m.epi, m.nodes[:, 2].max() - 0.5)
+    assert points[np.unique(tris), 2].max() <= m.nodes[:, 2].max() - 0.5 + 1e-12
+    assert 0.95 * total < area(points, tris) < total
+    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
+    assert len({tuple(e) for e in directed}) == len(directed)  # no edge twice the same way: winding kept
+    edges, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    rim = edges[counts == 1]
+    assert counts.max() == 2 and np.all(np.bincount(rim.ravel())[np.unique(rim)] == 2)  # a closed loop
+    z = np.sort(m.nodes[np.unique(m.epi), 2])
+    z_node = z[len(z) // 2]  # a plane through an epicardial node
+    below, above = (area(*clip_below(m.nodes, m.epi, z_node + dz)) for dz in (-1e-9, 1e-9))
+    assert 0 <= above - below < 1e-5 * total
+    assert area(*clip_below(m.nodes, m.epi, m.nodes[:, 2].max() + 1.0)) == pytest.approx(total)
+
+
 def test_heartfem_frames_orthonormal_and_transmural(default_mesh):
     """heartFEM's rule: orthonormal (f, s, n); s points endo → epi (away from the long axis on the
     free wall); helix angles stay within the endo/epi range and reach both signs; at points next
