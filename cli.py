@@ -335,12 +335,15 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
 @bench_app.command("corners")
 def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fidelity"),
                   nodes: int = typer.Option(800, "--nodes", help="Target mesh node count."),
+                  base: Base = typer.Option(Base.sliding, "--base", help="Base condition: sliding (default) | clamped | spring | heartfem."),
+                  fibres: str = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (default) | heartfem."),
                   as_json: bool = typer.Option(False, "--json")):
     """Round trip solve(unload(x_ED)) at the 8 corners of the paper's box on the 3 extreme shapes."""
     from solver.benchmark_solver import run_corner_benchmark
 
     try:
-        rows = run_corner_benchmark(fidelity.value, nodes)
+        _check_fibres(fibres)
+        rows = run_corner_benchmark(fidelity.value, nodes, base.value, fibres)
     except _input_errors() as exc:
         fail(str(exc))
     for r in rows:
@@ -353,7 +356,8 @@ def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fi
             typer.echo(f"shape {r['shape']:>2} P={r['pressure_mmhg']:>4g} C={r['stiffness_pa']:>3g} θ=±{r['helix_deg']:g}: FAILED {r['reason']}")
     ok = [r for r in rows if r["ok"]]
     worst = max((r["roundtrip_mm"] for r in ok), default=float("nan"))
-    typer.echo(f"{fidelity.value}: {len(ok)}/{len(rows)} corners converged; worst round trip {worst:.1e} mm "
+    typer.echo(f"{fidelity.value}, base {base.value}, {fibres} fibres: {len(ok)}/{len(rows)} corners converged; "
+               f"worst round trip {worst:.1e} mm "
                f"(goal ≤ 1e-3 mm); {sum(r['wall_s'] for r in rows):.0f} s in all")
 
 

@@ -185,6 +185,7 @@ def test_mesh_command_rejects_bad_shape(tmp_path):
     (("bench", "solver", "--shape", -1, "--nodes", 60), "shape id"),
     (("bench", "solver", "--threads", 0), "--threads"),
     (("bench", "corners", "--nodes", 10), "node count"),
+    (("bench", "corners", "--fibres", "random"), "--fibres must be laplace or heartfem"),
 ])
 def test_benchmarks_reject_bad_sizes(args, message):
     r = run(*args)
