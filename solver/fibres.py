@@ -114,7 +114,9 @@ def helix_angle_at_nodes(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: fl
 
 FIBRE_RULES = ("laplace", "heartfem")
 BASE_CLIP_MM = 0.5  # heartFEM's clipheight, 0.05 cm
-NORMAL_BLEND_FRACTION = 0.005  # soft-min width of the closest-point normal, × the surface's mean edge length
+NORMAL_BLEND_FRACTION = 0.005  # soft-min width δ of the closest-point normal, × the surface's mean edge length
+NORMAL_BLEND_CUTOFF = 20.0  # the blend's weights are zero beyond this many δ
+FULL_WEIGHT_AREA = 1e-3  # a clipped piece counts fully in the blend from this fraction of the mean triangle area
 
 
 def closest_points_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -146,44 +148,86 @@ def closest_points_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray
     return out
 
 
-def surface_distance(points: np.ndarray, nodes: np.ndarray, triangles: np.ndarray, candidates: int = 16,
-                     blend_fraction: float = NORMAL_BLEND_FRACTION):
+def vertex_normals(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals [n, 3] of a triangulated surface (zero where no triangle)."""
+    tri = nodes[triangles]
+    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 × area × unit normal
+    out = np.zeros_like(nodes, dtype=float)
+    np.add.at(out, triangles.ravel(), np.repeat(face_n, 3, axis=0))
+    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+
+
+def triangle_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    tri = nodes[triangles]
+    return 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+
+
+def mean_edge_length(nodes: np.ndarray, triangles: np.ndarray) -> float:
+    tri = nodes[triangles]
+    return float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).mean())
+
+
+def surface_distance(points: np.ndarray, nodes: np.ndarray, triangles: np.ndarray, candidates: int = 32,
+                     blend_mm: float | None = None, normals: np.ndarray | None = None,
+                     face_weights: np.ndarray | None = None):
     """Distance from each point [k, 3] to a triangulated surface, and the unit surface normal at
     the closest point (orientation as the triangles are wound).
 
-    The normal is interpolated from area-weighted vertex normals at each candidate triangle's
-    closest point, and the candidates are blended with soft-min weights exp(−(d_i − d_min)/δ),
-    δ = blend_fraction × the surface's mean edge length. So it varies continuously with the points
-    and the surface: inverse FE moves the reference and rebuilds the fibres, and a wall point inside
-    a convex faceted surface (the epicardium) jumps from one face's closest point to another's where
-    the two are equidistant (a 0.03 jump in the normal stalled the inverse at ~1e-3 mm). Only points
-    within a few δ of such a tie see the blend; blend_fraction = 0 takes the closest triangle alone.
-    The closest point is searched among the `candidates` triangles with the nearest centroids."""
+    The normal is interpolated from the vertex normals (`normals` at `nodes`; default: area-weighted
+    ones of `triangles`) at each triangle's closest point, and the triangles are blended with weights
+    exp(−Δ/δ)·(1 − Δ/(20δ))², Δ = d_i − d_min, zero for Δ ≥ 20δ; δ = blend_mm (default
+    NORMAL_BLEND_FRACTION × the mean edge length; 0 takes the closest triangle alone). So the normal
+    varies continuously with the points and the surface: inverse FE moves the reference and rebuilds
+    the fibres, and a wall point inside a convex faceted surface (the epicardium) jumps from one
+    face's closest point to another's where the two are equidistant (a 0.03 jump in the normal
+    stalled the inverse at ~1e-3 mm). On a smooth stretch the neighbours of the closest face count
+    too when the closest point is within ~√(2 d_min · 20δ) of their shared edge, where their normals
+    agree with it. `face_weights` [t] (default 1) scale each triangle's weight: a clipped surface
+    gives its tiny pieces little, so that pieces appearing as the plane passes a node change nothing.
+    The triangles are searched by their centroids, nearest first, `candidates` at a time and more
+    until every triangle left out is provably farther than d_min + 20δ."""
     from scipy.spatial import cKDTree
 
     tri = nodes[triangles]
-    face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 × area × unit normal
-    vertex_n = np.zeros_like(nodes)
-    np.add.at(vertex_n, triangles.ravel(), np.repeat(face_n, 3, axis=0))
-    vertex_n /= np.maximum(np.linalg.norm(vertex_n, axis=1, keepdims=True), 1e-300)
-    k, m = len(points), min(candidates, len(triangles))
-    _, near = cKDTree(tri.mean(axis=1)).query(points, k=m)
-    flat = near.reshape(k, m).ravel()
+    vertex_n = vertex_normals(nodes, triangles) if normals is None else normals
+    delta = NORMAL_BLEND_FRACTION * mean_edge_length(nodes, triangles) if blend_mm is None else blend_mm
+    cutoff = NORMAL_BLEND_CUTOFF * delta
+    centroids = tri.mean(axis=1)
+    reach = float(np.linalg.norm(tri - centroids[:, None, :], axis=2).max())  # a triangle's points lie this close to its centroid
+    tree = cKDTree(centroids)
+    n_tri = len(triangles)
+    dist, normal = np.empty(len(points)), np.empty((len(points), 3))
+    todo, m = np.arange(len(points)), min(candidates, n_tri)
+    while todo.size:
+        centroid_dist, near = tree.query(points[todo], k=m)
+        centroid_dist, near = centroid_dist.reshape(len(todo), m), near.reshape(len(todo), m)
+        d_min, n_blend = _blended_normal(points[todo], near, tri, vertex_n[triangles], delta, cutoff, face_weights)
+        done = (m == n_tri) | (centroid_dist[:, -1] - reach > d_min + cutoff)
+        dist[todo[done]], normal[todo[done]] = d_min[done], n_blend[done]
+        todo, m = todo[~done], min(2 * m, n_tri)
+    return dist, normal
+
+
+def _blended_normal(points, near, tri, tri_normals, delta: float, cutoff: float, face_weights=None):
+    """d_min [k] and the blended unit normal [k, 3] over the candidate triangles `near` [k, m]."""
+    k, m = near.shape
+    flat = near.ravel()
     rep = np.repeat(points, m, axis=0)
     q = closest_points_on_triangles(rep, tri[flat, 0], tri[flat, 1], tri[flat, 2])
     dist = np.linalg.norm(q - rep, axis=1).reshape(k, m)
     lam = _barycentric(q, *(tri[flat, i] for i in range(3)))
-    normals = np.einsum("ka,kai->ki", lam, vertex_n[triangles[flat]]).reshape(k, m, 3)
+    normals = np.einsum("ka,kai->ki", lam, tri_normals[flat]).reshape(k, m, 3)
     d_min = dist.min(axis=1)
-    if blend_fraction > 0:
-        edges = np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2)
-        blend_mm = blend_fraction * float(edges.mean())
-        weights = np.exp(-(dist - d_min[:, None]) / blend_mm)
+    gap = dist - d_min[:, None]
+    closest = (np.arange(m)[None, :] == dist.argmin(axis=1)[:, None]).astype(float)
+    if delta > 0:
+        weights = np.exp(-gap / delta) * np.clip(1.0 - gap / cutoff, 0.0, None) ** 2
+        if face_weights is not None:
+            weights = weights * face_weights[near] + 1e-12 * closest  # never all zero
     else:
-        weights = (np.arange(m)[None, :] == dist.argmin(axis=1)[:, None]).astype(float)
+        weights = closest
     normal = np.einsum("km,kmi->ki", weights, normals)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
-    return d_min, normal
+    return d_min, normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
 
 
 def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -201,47 +245,66 @@ def clip_below(nodes: np.ndarray, triangles: np.ndarray, height: float):
     """The part of a triangulated surface below z = height, cut along the plane as VTK's
     vtkClipPolyData cuts it (heartFEM clips its surfaces so): triangles wholly below are kept, those
     wholly above dropped, and a triangle the plane crosses is cut at the plane (a triangle or a
-    quadrilateral split in two, winding kept). A cut edge's point is shared by both of its triangles.
-    The cut surface moves continuously with the nodes, where dropping whole triangles would jump.
-    Returns (points [p, 3], triangles [t, 3]); the first len(nodes) points are the nodes."""
+    quadrilateral split in two, winding kept). A cut edge's point is shared by both of its triangles,
+    a node on the plane is its own cut point, and zero-area pieces are dropped. The cut surface moves
+    continuously with the nodes, where dropping whole triangles would jump.
+    Returns (points [p, 3], triangles [t, 3], interpolation [p, n] sparse): points = interpolation @
+    nodes (the first n points are the nodes; carry any nodal field to the points the same way)."""
+    n = len(nodes)
     below = nodes[:, 2] < height
     inside = below[triangles]
     n_in = inside.sum(axis=1)
+    crossed = (n_in == 1) | (n_in == 2)
     kept = [triangles[n_in == 3]]
-    cut = triangles[(n_in == 1) | (n_in == 2)]
-    if len(cut) == 0:
-        return nodes, kept[0]
+    cut = triangles[crossed]
     # rotate each cut triangle (keeping its winding) so that it starts at its lone vertex: the one
     # below the plane when one is below, the one above when two are
-    lone = np.where(inside[(n_in == 1) | (n_in == 2)].sum(axis=1, keepdims=True) == 1,
-                    inside[(n_in == 1) | (n_in == 2)], ~inside[(n_in == 1) | (n_in == 2)])
-    shift = lone.argmax(axis=1)
-    idx = (shift[:, None] + np.arange(3)[None, :]) % 3
+    lone = np.where(n_in[crossed][:, None] == 1, inside[crossed], ~inside[crossed])
+    idx = (lone.argmax(axis=1)[:, None] + np.arange(3)[None, :]) % 3
     a, b, c = (np.take_along_axis(cut, idx, axis=1)[:, i] for i in range(3))
-    one_below = below[a]
-    edges = np.concatenate([np.stack([a, b], 1), np.stack([a, c], 1)])
-    keys, inverse = np.unique(np.sort(edges, axis=1), axis=0, return_inverse=True)
+    keys, inverse = np.unique(np.sort(np.concatenate([np.stack([a, b], 1), np.stack([a, c], 1)]), axis=1),
+                              axis=0, return_inverse=True)
     inverse = inverse.ravel()
-    za, zb = nodes[keys[:, 0], 2], nodes[keys[:, 1], 2]
-    t = (height - za) / (zb - za)
-    points = np.concatenate([nodes, nodes[keys[:, 0]] + t[:, None] * (nodes[keys[:, 1]] - nodes[keys[:, 0]])])
-    p_ab = len(nodes) + inverse[: len(a)]
-    p_ac = len(nodes) + inverse[len(a):]
+    z0, z1 = nodes[keys[:, 0], 2], nodes[keys[:, 1], 2]
+    t = (height - z0) / (z1 - z0)  # one end below, one at or above: z1 ≠ z0
+    fresh = (t != 0.0) & (t != 1.0)  # else an end lies on the plane and is the cut point itself
+    point_of_edge = np.where(fresh, n + np.cumsum(fresh) - 1, np.where(t == 0.0, keys[:, 0], keys[:, 1]))
+    rows = np.concatenate([np.arange(n), np.repeat(n + np.arange(fresh.sum()), 2)])
+    cols = np.concatenate([np.arange(n), keys[fresh].ravel()])
+    vals = np.concatenate([np.ones(n), np.stack([1.0 - t[fresh], t[fresh]], 1).ravel()])
+    interpolation = sp.csr_matrix((vals, (rows, cols)), shape=(n + int(fresh.sum()), n))
+    points = interpolation @ nodes
+    p_ab, p_ac = point_of_edge[inverse[: len(a)]], point_of_edge[inverse[len(a):]]
+    one_below = below[a]
     kept.append(np.stack([a, p_ab, p_ac], 1)[one_below])  # the lone vertex's corner
     two = ~one_below  # b and c below: the quadrilateral p_ab, b, c, p_ac
     kept.append(np.stack([p_ab, b, c], 1)[two])
     kept.append(np.stack([p_ab, c, p_ac], 1)[two])
     tris = np.concatenate(kept)
-    e1, e2 = points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]]
-    area2 = np.linalg.norm(np.cross(e1, e2), axis=1)
-    return points, tris[area2 > 1e-12 * max(float(area2.max(initial=0.0)), 1e-300)]  # a node on the plane leaves slivers
+    return points, tris[triangle_areas(points, tris) > 0], interpolation
 
 
 def _clipped_surface(mesh: TetMesh, triangles: np.ndarray, clip_mm: float):
-    """A surface of the mesh cut clip_mm below its base (the highest node), as heartFEM clips it;
-    the whole surface if nothing of it lies below."""
-    points, tris = clip_below(mesh.nodes, triangles, mesh.nodes[:, 2].max() - clip_mm)
-    return (points, tris) if len(tris) else (mesh.nodes, triangles)
+    """A surface of the mesh cut clip_mm below its base (the highest node), as heartFEM clips it, with
+    the whole surface's vertex normals carried to its points (so they do not jump as a node crosses
+    the plane); the whole surface if nothing of it lies below. Returns (points, triangles, normals,
+    face weights for the blend: a piece's area over FULL_WEIGHT_AREA × the mean area, at most 1)."""
+    whole = vertex_normals(mesh.nodes, triangles)
+    points, tris, interpolation = clip_below(mesh.nodes, triangles, mesh.nodes[:, 2].max() - clip_mm)
+    if len(tris) == 0:
+        return mesh.nodes, triangles, whole, np.ones(len(triangles))
+    normals = interpolation @ whole
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    full = FULL_WEIGHT_AREA * triangle_areas(mesh.nodes, triangles).mean()
+    return points, tris, normals, np.minimum(triangle_areas(points, tris) / full, 1.0)
+
+
+def _clipped_distance(x: np.ndarray, mesh: TetMesh, surface: np.ndarray, clip_mm: float):
+    """Distance and blended normal from points x to a clipped surface; δ from the whole surface's
+    edges (the clipped one's mean edge changes as triangles are cut)."""
+    points, tris, normals, weights = _clipped_surface(mesh, surface, clip_mm)
+    blend_mm = NORMAL_BLEND_FRACTION * mean_edge_length(mesh.nodes, surface)
+    return surface_distance(x, points, tris, blend_mm=blend_mm, normals=normals, face_weights=weights)
 
 
 def heartfem_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam: np.ndarray,
@@ -249,8 +312,8 @@ def heartfem_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, 
     """(f, s, n) frames [m, nq, 3, 3] at quadrature points by heartFEM's rule (see above); mm."""
     x = np.einsum("eai,aq->eqi", mesh.nodes[mesh.tets], lam).reshape(-1, 3)
     # TetMesh keeps its surface triangles wound out of the wall, so the normals need no fixing
-    d_endo, n_endo = surface_distance(x, *_clipped_surface(mesh, mesh.endo, clip_mm))
-    d_epi, n_epi = surface_distance(x, *_clipped_surface(mesh, mesh.epi, clip_mm))
+    d_endo, n_endo = _clipped_distance(x, mesh, mesh.endo, clip_mm)
+    d_epi, n_epi = _clipped_distance(x, mesh, mesh.epi, clip_mm)
     d = d_endo ** 2 / np.maximum(d_endo ** 2 + d_epi ** 2, 1e-300)  # squared, as heartFEM computes it
     t = -(1.0 - d)[:, None] * n_endo + d[:, None] * n_epi  # out of the wall: −N_endo and N_epi point endo → epi
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-300)

@@ -1,6 +1,7 @@
 """Shape model reproducibility and ranges; gmsh meshes: tags, quality, node counts; surface tagging
 of untagged meshes; fibre frames."""
 import numpy as np
+import scipy.sparse as sp
 import pytest
 
 from solver.elements import cell_quadrature
@@ -142,37 +143,58 @@ def test_surface_normal_is_continuous_where_two_faces_are_equidistant():
     d, n = surface_distance(pts, nodes, tris)
     assert abs(d[0] - d[1]) < 1e-6
     assert np.linalg.norm(n[0] - n[1]) < 1e-4  # continuous across the tie
-    _, n_sharp = surface_distance(pts, nodes, tris, blend_fraction=0.0)
+    _, n_sharp = surface_distance(pts, nodes, tris, blend_mm=0.0)
     assert np.linalg.norm(n_sharp[0] - n_sharp[1]) > 1e-2  # the closest face alone jumps
     np.testing.assert_allclose(n[2], n_sharp[2], atol=1e-12)  # far from the tie: unchanged
 
 
 def test_surface_clipped_at_the_base_is_cut_along_the_plane(default_mesh):
     """heartFEM's surfaces are cut 0.05 cm below the base as vtkClipPolyData cuts them: everything kept
-    lies below the plane, the kept area changes continuously as the plane passes a node (dropping
-    whole triangles by their centroids jumped), the winding is kept, and the cut rim is one loop."""
-    from solver.fibres import clip_below
+    lies below the plane, each piece faces the way its triangle faced, the cut rim is one loop, a
+    node on the plane is not duplicated, and the kept area and the fibre frames change continuously
+    as the plane passes a node (dropping whole triangles by their centroids jumped)."""
+    from scipy.sparse.csgraph import connected_components
+
+    from solver.fibres import clip_below, heartfem_frames
 
     m = default_mesh
 
-    def area(points, tris):
+    def area(points, tris, *_):
         return 0.5 * np.linalg.norm(np.cross(points[tris[:, 1]] - points[tris[:, 0]],
                                              points[tris[:, 2]] - points[tris[:, 0]]), axis=1).sum()
 
+    def face_normals(points, tris):
+        return np.cross(points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]])
+
     total = area(m.nodes, m.epi)
-    points, tris = clip_below(m.nodes, m.epi, m.nodes[:, 2].max() - 0.5)
-    assert points[np.unique(tris), 2].max() <= m.nodes[:, 2].max() - 0.5 + 1e-12
+    height = m.nodes[:, 2].max() - 0.5
+    points, tris, interpolation = clip_below(m.nodes, m.epi, height)
+    np.testing.assert_allclose(interpolation @ m.nodes, points)
+    assert points[np.unique(tris), 2].max() <= height + 1e-12
     assert 0.95 * total < area(points, tris) < total
-    directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-    assert len({tuple(e) for e in directed}) == len(directed)  # no edge twice the same way: winding kept
-    edges, counts = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    # each piece lies in its parent triangle's plane and faces the same way (parent: nearest centroid)
+    parents = np.linalg.norm(points[tris].mean(1)[:, None] - m.nodes[m.epi].mean(1)[None], axis=2).argmin(1)
+    assert np.all((face_normals(points, tris) * face_normals(m.nodes, m.epi)[parents]).sum(1) > 0)
+    edges, counts = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1),
+                              axis=0, return_counts=True)
     rim = edges[counts == 1]
-    assert counts.max() == 2 and np.all(np.bincount(rim.ravel())[np.unique(rim)] == 2)  # a closed loop
+    assert counts.max() == 2 and np.all(np.bincount(rim.ravel())[np.unique(rim)] == 2)
+    rim_nodes, local = np.unique(rim, return_inverse=True)
+    graph = sp.coo_matrix((np.ones(len(rim)), (local.reshape(-1, 2)[:, 0], local.reshape(-1, 2)[:, 1])),
+                          shape=(len(rim_nodes),) * 2)
+    assert connected_components(graph, directed=False)[0] == 1  # one loop
+    # a plane through an epicardial node: no duplicate point, and nothing jumps as it passes the node
     z = np.sort(m.nodes[np.unique(m.epi), 2])
-    z_node = z[len(z) // 2]  # a plane through an epicardial node
+    z_node = z[len(z) // 2]
+    on, _, _ = clip_below(m.nodes, m.epi, z_node)
+    assert len(np.unique(np.round(on, 9), axis=0)) == len(on)
     below, above = (area(*clip_below(m.nodes, m.epi, z_node + dz)) for dz in (-1e-9, 1e-9))
     assert 0 <= above - below < 1e-5 * total
     assert area(*clip_below(m.nodes, m.epi, m.nodes[:, 2].max() + 1.0)) == pytest.approx(total)
+    lam = cell_quadrature(m.nodes, m.tets, 1, 2).lam
+    top = m.nodes[:, 2].max()
+    frames = [heartfem_frames(m, 60.0, -60.0, lam, clip_mm=top - z_node + dz) for dz in (-1e-9, 1e-9)]
+    assert np.abs(frames[1] - frames[0]).max() < 1e-4
 
 
 def test_heartfem_frames_orthonormal_and_transmural(default_mesh):
