@@ -102,13 +102,13 @@ def helix_angle_at_nodes(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: fl
 # --------------------------------------------------------------------------- heartFEM's rule
 # The original dataset's pipeline (heartFEM's vtk_py: addLocalProlateSpheroidalDirections and
 # addLocalFiberOrientation) builds the frame at each quadrature point from the closest points on
-# the endo- and epicardial surfaces (both cut 0.05 cm below the base, as vtkClipPolyData cuts them) instead of a Laplace
-# solve. Its transmural coordinate is d = d_endo² / (d_endo² + d_epi²): vtkCellLocator's
+# the endo- and epicardial surfaces (both cut 0.05 cm below the base, as vtkClipPolyData cuts
+# them) instead of a Laplace solve. Its transmural coordinate is d = d_endo² / (d_endo² + d_epi²): vtkCellLocator's
 # FindClosestPoint returns the *squared* distance, which that code divides as if it were the
 # distance. The transmural direction is t = unit(−(1 − d) N_endo + d N_epi) with the surface
 # normals (out of the wall) at the closest points (heartFEM takes the closest face's normal; we
-# interpolate vertex normals and blend the faces that are equidistant within 0.5 % of an edge length,
-# which keeps the frames continuous for the inverse problem), e_c = e_z × t, e_l = t × e_c, and the helix
+# interpolate vertex normals and blend nearly equidistant faces, see surface_distance, which keeps
+# the frames continuous for the inverse problem), e_c = e_z × t, e_l = t × e_c, and the helix
 # angle is linear in d. On a wall one element thick (the dataset's meshes) the squared ratio moves
 # the quadrature points' angles from ±30° to ±48° for 60/−60 — it shows in the displacements.
 
@@ -154,7 +154,12 @@ def vertex_normals(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     face_n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # 2 × area × unit normal
     out = np.zeros_like(nodes, dtype=float)
     np.add.at(out, triangles.ravel(), np.repeat(face_n, 3, axis=0))
-    return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
+    return _unit(out)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """Rows of v scaled to unit length (zero rows stay zero)."""
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
 
 
 def triangle_areas(nodes: np.ndarray, triangles: np.ndarray) -> np.ndarray:
@@ -226,8 +231,7 @@ def _blended_normal(points, near, tri, tri_normals, delta: float, cutoff: float,
             weights = weights * face_weights[near] + 1e-12 * closest  # never all zero
     else:
         weights = closest
-    normal = np.einsum("km,kmi->ki", weights, normals)
-    return d_min, normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    return d_min, _unit(np.einsum("km,kmi->ki", weights, normals))
 
 
 def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -293,8 +297,7 @@ def _clipped_surface(mesh: TetMesh, triangles: np.ndarray, clip_mm: float):
     points, tris, interpolation = clip_below(mesh.nodes, triangles, mesh.nodes[:, 2].max() - clip_mm)
     if len(tris) == 0:
         return mesh.nodes, triangles, whole, np.ones(len(triangles))
-    normals = interpolation @ whole
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+    normals = _unit(interpolation @ whole)
     full = FULL_WEIGHT_AREA * triangle_areas(mesh.nodes, triangles).mean()
     return points, tris, normals, np.minimum(triangle_areas(points, tris) / full, 1.0)
 
