@@ -235,6 +235,26 @@ class MechanicsProblem:
         return float(np.linalg.det(self.deformation_gradient(u)).min())
 
     # --- assembly ----------------------------------------------------------------------------
+    def _follower_load(self, u: np.ndarray):
+        """Surface tangents a1, a2 [nf, nq, 3] of the deformed loaded facets and the follower load
+        per unit pressure, ∫ n da · δu per facet dof [nf, 3·nb] (mm², n outward from the wall)."""
+        xf = (self.dofmap.points + u)[self.pdofs]
+        fq = self.fq
+        a1 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 0])
+        a2 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 1])
+        n = np.cross(a1, a2)
+        load = np.einsum("bq,fqi,q->fbi", fq.values, n, fq.weights).reshape(len(xf), self.facet_udofs.shape[1])
+        return a1, a2, load
+
+    def pressure_load(self, z_full: np.ndarray) -> np.ndarray:
+        """∂R/∂P at state z: the reduced residual's derivative with respect to the cavity pressure
+        (mm², R being linear in P). With the tangent K = ∂R/∂z, the load-path tangent is
+        dz/dP = −K⁻¹ ∂R/∂P (the Euler predictor of `forward.inflate`)."""
+        _, _, load = self._follower_load(self.split(z_full)[0])
+        full = np.zeros(self.n_full)
+        np.add.at(full, self.facet_udofs.ravel(), load.ravel())
+        return full[self.free]
+
     def assemble(self, z_full: np.ndarray, pressure_pa: float, with_tangent: bool = True):
         """Reduced residual R (N), reduced tangent K (CSR) and min det F over quadrature points."""
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
@@ -274,13 +294,9 @@ class MechanicsProblem:
                 Rp -= np.einsum("ecd,ed->ec", self._stab, p[self.tets])
             np.add.at(full, self.n_u + self.tets.ravel(), Rp.ravel())
         # follower pressure on the loaded surface: + ∫ P n da · δu (n outward from the wall)
-        xf = (self.dofmap.points + u)[self.pdofs]
+        a1, a2, Rf = self._follower_load(u)
+        np.add.at(full, self.facet_udofs.ravel(), pressure_pa * Rf.ravel())
         fq = self.fq
-        a1 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 0])
-        a2 = np.einsum("fbi,bq->fqi", xf, fq.dxi[:, 1])
-        n = np.cross(a1, a2)
-        Rf = pressure_pa * np.einsum("bq,fqi,q->fbi", fq.values, n, fq.weights).reshape(len(xf), self.facet_udofs.shape[1])
-        np.add.at(full, self.facet_udofs.ravel(), Rf.ravel())
         if self._spring is not None:
             us = z_full[: self.n_u][self._spring_udofs]
             np.add.at(full, self._spring_udofs.ravel(), np.einsum("fab,fb->fa", self._spring, us).ravel())

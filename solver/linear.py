@@ -71,6 +71,11 @@ class SparseSolver:
     def has_factor(self) -> bool:
         return self._A is not None
 
+    @property
+    def size(self) -> int:
+        """Order of the kept factorisation (0 when none is kept)."""
+        return 0 if self._A is None else self._A.shape[0]
+
     def factorize(self, A: sp.csr_matrix) -> None:
         """Factorise A for later solves; SingularMatrix when the backend finds it singular."""
         A = A.tocsr()

@@ -49,6 +49,39 @@ def test_assembled_tangent_matches_finite_differences(coarse_lv, preset, base):
     assert np.abs(fd - an).max() <= 1e-6 * np.abs(an).max()
 
 
+@pytest.mark.parametrize("preset", PRESET_NAMES)
+def test_pressure_load_is_the_residuals_derivative_in_pressure(coarse_lv, preset):
+    problem = lv_problem(coarse_lv, CaseParameters(10.0, 100.0, 65.0, -65.0), preset)
+    z = forward_solve(coarse_lv, CaseParameters(6.0, 100.0, 65.0, -65.0), preset).state
+    R_hi, _, _ = problem.assemble(z, 900.0, with_tangent=False)
+    R_lo, _, _ = problem.assemble(z, 700.0, with_tangent=False)
+    dR_dP = problem.pressure_load(z)
+    assert np.abs(dR_dP).max() > 0
+    assert np.abs((R_hi - R_lo) / 200.0 - dR_dP).max() <= 1e-9 * np.abs(dR_dP).max()
+
+
+def test_euler_predictor_lands_closer_than_the_secant(coarse_lv):
+    """From the converged states at 25 % and 50 % of the load, the tangent predictor's guess at
+    100 % lies nearer the converged state than the secant's (the Fung law stiffens)."""
+    from solver.forward import _predict, inflate
+    from solver.linear import SparseSolver
+
+    params = CaseParameters(8.0, 150.0, 60.0, -60.0)
+    problem = lv_problem(coarse_lv, params, "fast")
+    P = params.pressure_pa
+    with SparseSolver() as linsolve:
+        z25, _ = inflate(problem, 0.25 * P, linsolve=linsolve)
+        z50, _ = inflate(problem, 0.5 * P, linsolve=linsolve)
+        z100, _ = inflate(problem, P, linsolve=linsolve)
+        linsolve.factorize(problem.assemble(z50, 0.5 * P)[1])  # the tangent at 50 %
+        euler = _predict(problem, z50, z25, 0.5, 1.0, 2.0, 0.5 * P, linsolve)
+    secant = z50 + (z50 - z25) * 2.0
+    n = problem.n_u
+    err_euler = np.abs(euler[:n] - z100[:n]).max()
+    err_secant = np.abs(secant[:n] - z100[:n]).max()
+    assert err_euler < 0.7 * err_secant  # measured 1.16 against 2.42 mm
+
+
 @pytest.mark.parametrize("order", [1, 2])
 def test_homogeneous_isochoric_stretch_patch_test(order):
     """u = (F − I) X with det F = 1: interior nodal forces vanish and the force on x = 1 equals
