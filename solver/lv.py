@@ -98,7 +98,8 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
                   reuse_factor: bool | None = None, fibres: str = "laplace") -> InverseResult:
     """Unloaded geometry X with x(X) = x_ED, by the backward-displacement fixed point
     X ← X − (x(X) − x_ED) (Anderson-accelerated), each re-solve warm-started from the previous
-    displacement field (which maps the plain update exactly onto x_ED).
+    displacement field shifted so that the trial reference maps exactly onto x_ED (for the plain
+    update, the previous field itself).
 
     Fibres are recomputed on each trial reference (they are defined on the stress-free state),
     so forward_solve(unloaded) reproduces x_ED. `initial_unloaded` (from the network, or from a
@@ -150,7 +151,10 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
                 check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
                 problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid, fibres))
                 try:
-                    z, st = inflate(problem, params.pressure_pa, z0=z_prev, start_load=1.0,
+                    # start where the trial reference maps exactly onto x_ED (the previous field,
+                    # moved by how far the accelerated step lands from the plain one)
+                    z0 = z_prev + _state_from_vertices(problem, X_prev - mismatch - X)
+                    z, st = inflate(problem, params.pressure_pa, z0=z0, start_load=1.0,
                                     linsolve=linsolve, looseness=looseness, reuse_factor=reuse_factor)
                 except SolveError:
                     z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=looseness)
