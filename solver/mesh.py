@@ -43,11 +43,23 @@ class TetMesh:
         return np.unique(self.epi)
 
 
+def _unique_faces(faces: np.ndarray, **kwargs):
+    """np.unique over triangles as node sets (any order), returning only the `return_*` arrays.
+
+    Each triangle becomes one int64 (its sorted node numbers in base n), which sorts ~5× faster
+    than np.unique(axis=0) on rows; meshes with n³ ≥ 2⁶³ fall back to rows."""
+    key = np.sort(faces, axis=1).astype(np.int64)
+    n = int(key.max()) + 1 if key.size else 1
+    if n < 2_000_000:  # n³ < 2⁶³
+        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+        return np.unique(key, **kwargs)[1:]
+    return np.unique(key, axis=0, **kwargs)[1:]
+
+
 def boundary_facets(tets: np.ndarray) -> np.ndarray:
     """Triangles on the boundary, oriented outward (tets must be positively oriented)."""
     faces = tets[:, TET_FACES].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    idx, counts = _unique_faces(faces, return_index=True, return_counts=True)
     return faces[idx[counts == 1]]
 
 
@@ -108,9 +120,8 @@ def _tet_components(tets: np.ndarray) -> np.ndarray:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    key = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
     owner = np.repeat(np.arange(len(tets)), 4)
-    _, inverse = np.unique(key, axis=0, return_inverse=True)
+    (inverse,) = _unique_faces(tets[:, TET_FACES].reshape(-1, 3), return_inverse=True)
     inverse = inverse.ravel()
     order = np.argsort(inverse, kind="stable")
     same = inverse[order][1:] == inverse[order][:-1]
@@ -123,8 +134,7 @@ def folded_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Indices of positively oriented tets whose neighbour across a face lies on their own side."""
     faces = tets[:, TET_FACES].reshape(-1, 3)  # outward for positive tets
     owner = np.repeat(np.arange(len(tets)), 4)
-    key = np.sort(faces, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    inverse, counts = _unique_faces(faces, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     if counts.max() > 2:
         raise MeshError(f"mesh is not manifold: {int((counts > 2).sum())} faces are shared by more than two tets")

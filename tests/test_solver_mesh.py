@@ -222,3 +222,20 @@ def test_heartfem_frames_orthonormal_and_transmural(default_mesh):
     d_epi, _ = surface_distance(x.reshape(-1, 3), m.nodes, m.epi)
     near_endo = (d_endo < 0.2 * d_epi).reshape(theta.shape)
     assert near_endo.any() and np.all(theta[near_endo] > 55.0)
+
+
+@pytest.mark.parametrize("offset", [0, 5_000_000])
+def test_face_keys_match_row_unique_for_small_and_huge_node_numbers(offset):
+    """Triangles as node sets: the int64 key (and the row fallback past 2e6 nodes) group the same
+    faces as np.unique over sorted rows."""
+    from solver.mesh import _unique_faces
+
+    rng = np.random.default_rng(0)
+    faces = rng.integers(0, 40, size=(500, 3)) + offset
+    faces = np.concatenate([faces, faces[:200, ::-1]])  # the same triangles in another order
+    _, want_idx, want_inv, want_cnt = np.unique(np.sort(faces, axis=1), axis=0, return_index=True,
+                                                return_inverse=True, return_counts=True)
+    idx, inv, cnt = _unique_faces(faces, return_index=True, return_inverse=True, return_counts=True)
+    np.testing.assert_array_equal(idx, want_idx)
+    np.testing.assert_array_equal(inv.ravel(), want_inv.ravel())
+    np.testing.assert_array_equal(cnt, want_cnt)
