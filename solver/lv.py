@@ -65,11 +65,18 @@ class ForwardResult:
 
 def forward_solve(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
                   base: str = "sliding", linsolve: SparseSolver | None = None,
-                  initial_state: np.ndarray | None = None, fibres: str = "laplace") -> ForwardResult:
+                  initial_state: np.ndarray | None = None, fibres: str = "laplace",
+                  problem: MechanicsProblem | None = None) -> ForwardResult:
     """Inflate the stress-free `mesh` to ED pressure, from zero load with adaptive steps; or, given
     `initial_state` (a full unknown vector near the loaded equilibrium), by Newton at full load,
-    falling back to load stepping. Raises SolveError if it does not converge."""
-    problem = lv_problem(mesh, params, fidelity, base, fibres=fibres)
+    falling back to load stepping. Raises SolveError if it does not converge.
+
+    `problem`: this mesh's problem for this case, already set up (the inverse's, on the unloaded
+    geometry it found), which spares building the sparsity and fibres again."""
+    if problem is None:
+        problem = lv_problem(mesh, params, fidelity, base, fibres=fibres)
+    elif not np.array_equal(problem.nodes[: mesh.n_nodes], mesh.nodes):
+        raise ValueError("the given problem is set up on another geometry than this mesh")
     z = None
     if initial_state is not None:
         try:
@@ -90,6 +97,7 @@ class InverseResult:
     stats: SolveStats
     mismatch_history: list
     state: np.ndarray = field(repr=False, default=None)  # final unknown vector (warm starts)
+    problem: MechanicsProblem = field(repr=False, default=None)  # set up on the unloaded geometry
 
 
 def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
@@ -137,7 +145,7 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
         if err <= tol:
             stats.wall_s = time.perf_counter() - t_start
             stats.min_jacobian = problem.min_jacobian(z)
-            return InverseResult(X, err, update, stats, history, z)
+            return InverseResult(X, err, update, stats, history, z, problem)
         if update == fid.max_inverse_updates:
             break
         # inexact inner solves: stop each re-solve when its residual, turned into a displacement
@@ -279,7 +287,8 @@ def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str
             guess_s = time.perf_counter() - t0
         inv = inverse_solve(ed_mesh, params, fid, base, initial_unloaded, linsolve=linsolve, fibres=fibres)
         fwd = forward_solve(ed_mesh.with_nodes(inv.unloaded_nodes), params, fid, base, linsolve=linsolve,
-                            initial_state=None if forward_from_scratch else inv.state, fibres=fibres)
+                            initial_state=None if forward_from_scratch else inv.state, fibres=fibres,
+                            problem=inv.problem)
     if fwd.stats.min_jacobian <= 0 or not np.all(np.isfinite(fwd.loaded_nodes)):
         raise SolveError("forward solve of the unloaded geometry produced an invalid state")
     roundtrip = float(np.linalg.norm(fwd.loaded_nodes - ed_mesh.nodes, axis=1).max())
