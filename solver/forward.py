@@ -60,7 +60,7 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
     rnorm = float("nan")
     fresh = False  # does the factorisation belong to the current state's tangent?
     need_tangent = not (reuse_factor and linsolve.has_factor)
-    for _ in range(fid.max_newton + 1):
+    for _ in range(2 * fid.max_newton + 2):  # a pass that only refreshes a stale tangent solves nothing
         t0 = time.perf_counter()
         R, K, min_J = problem.assemble(z, pressure_pa, with_tangent=need_tangent)
         stats.assembly_s += time.perf_counter() - t0

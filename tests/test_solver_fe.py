@@ -82,6 +82,25 @@ def test_euler_predictor_lands_closer_than_the_secant(coarse_lv):
     assert err_euler < 0.7 * err_secant  # measured 1.16 against 2.42 mm
 
 
+def test_modified_newton_budget_counts_solves_not_tangent_refreshes(coarse_lv):
+    """With a kept factorisation, a pass that finds the old tangent too slow only refactorises; the
+    Newton budget (max_newton) counts solves. Doubling the pressure from a converged state takes
+    10 solves over 13 passes: it must converge with max_newton = 10 (it failed when passes counted,
+    which sent an `accurate` inverse update back to load stepping from zero: 26 → 12 s for a pair)."""
+    from solver.linear import SparseSolver
+
+    params = CaseParameters(8.0, 100.0, 60.0, -60.0)
+    fid = dataclasses.replace(get_fidelity("fast"), max_newton=10)
+    z0 = forward_solve(coarse_lv, params, "fast").state
+    problem = lv_problem(coarse_lv, params, fid)
+    with SparseSolver() as linsolve:
+        linsolve.factorize(problem.assemble(z0, params.pressure_pa)[1])
+        z, stats = inflate(problem, 2.0 * params.pressure_pa, z0=z0, start_load=1.0, linsolve=linsolve,
+                           reuse_factor=True)
+    assert stats.newton_iterations <= fid.max_newton
+    assert len(stats.residual_history) > fid.max_newton + 1  # refresh passes happened
+
+
 @pytest.mark.parametrize("order", [1, 2])
 def test_homogeneous_isochoric_stretch_patch_test(order):
     """u = (F − I) X with det F = 1: interior nodal forces vanish and the force on x = 1 equals
