@@ -101,6 +101,29 @@ def test_modified_newton_budget_counts_solves_not_tangent_refreshes(coarse_lv):
     assert len(stats.residual_history) > fid.max_newton + 1  # refresh passes happened
 
 
+def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
+    """From zero strain the linearised step at a quarter of 8 mmHg overshoots into the Fung law's
+    stiff range (|R| grows ~9×); the backtracking keeps half of it, where |R| falls."""
+    from solver.forward import SolveStats, _backtrack
+    from solver.linear import SparseSolver
+
+    params = CaseParameters(8.0, 150.0, 60.0, -60.0)
+    problem = lv_problem(coarse_lv, params, "fast")
+    pressure = 0.25 * params.pressure_pa
+    z = problem.zeros()
+    R, K, _ = problem.assemble(z, pressure)
+    with SparseSolver() as linsolve:
+        dz = linsolve.solve(K, -R)
+    full = z.copy()
+    full[problem.free] += dz
+    r0 = np.abs(R).max()
+    assert np.abs(problem.assemble(full, pressure, with_tangent=False)[0]).max() > 2 * r0
+    z_new, step = _backtrack(problem, z, dz, pressure, r0, SolveStats())
+    np.testing.assert_allclose(step, 0.5 * dz)
+    R_new, _, min_J = problem.assemble(z_new, pressure, with_tangent=False)
+    assert min_J > 0 and np.abs(R_new).max() <= r0
+
+
 @pytest.mark.parametrize("order", [1, 2])
 def test_homogeneous_isochoric_stretch_patch_test(order):
     """u = (F − I) X with det F = 1: interior nodal forces vanish and the force on x = 1 equals
