@@ -116,7 +116,7 @@ class MechanicsProblem:
     def set_reference(self, nodes: np.ndarray, frames: np.ndarray) -> None:
         """Set the stress-free configuration (vertex coordinates, mm) and fibre frames."""
         fid = self.fidelity
-        self.nodes = np.asarray(nodes, dtype=float)
+        self.nodes = np.array(nodes, dtype=float)  # a copy: the caller's array may change later
         self.dofmap = build_dofmap(self.nodes, self.tets, fid.displacement_order)
         self.cq = cell_quadrature(self.nodes, self.tets, fid.displacement_order, fid.quad_degree)
         if frames.shape[:2] != self.cq.dV.shape:

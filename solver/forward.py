@@ -12,6 +12,9 @@ from .linear import SingularMatrix, SparseSolver
 
 
 STALE_TANGENT_RATE = 0.25  # refactorise when a modified-Newton step reduces |R| by less than 4×
+MODIFIED_STEP_WEIGHT = 1.0 / 3.0  # a modified-Newton step's share of the iteration budget: it contracts
+# only linearly (≥ 4× per step, else the tangent is refreshed), so it may take several where full Newton
+# takes one; it costs a residual assembly and a back-substitution, not a tangent and a factorisation
 BACKTRACK_STEPS = (1.0, 0.5, 0.25)  # fractions of a full Newton step tried in turn
 INTERMEDIATE_LOOSENESS = 1e4  # intermediate load steps: |R| ≤ 1e-5 P·area, |Δu| ≤ 1e-3 mm
 
@@ -61,12 +64,20 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
     rnorm = float("nan")
     fresh = False  # does the factorisation belong to the current state's tangent?
     need_tangent = not (reuse_factor and linsolve.has_factor)
-    for _ in range(2 * fid.max_newton + 2):  # a pass that only refreshes a stale tangent solves nothing
+    z_before = None  # the state the last step started from
+    budget_used = 0.0  # max_newton counts full steps; a modified step counts MODIFIED_STEP_WEIGHT
+    # a pass that only refreshes a tangent or steps back solves nothing: at most two passes per solve
+    for _ in range(2 * int(np.ceil(fid.max_newton / MODIFIED_STEP_WEIGHT)) + 2):
         t0 = time.perf_counter()
         R, K, min_J = problem.assemble(z, pressure_pa, with_tangent=need_tangent)
         stats.assembly_s += time.perf_counter() - t0
         rnorm = float(np.abs(R).max())
         stats.residual_history.append(rnorm)
+        if z_before is not None and not fresh and not (np.isfinite(rnorm) and min_J > 0 and rnorm <= r_prev):
+            # a step with an old tangent made things worse (an inverse update's first step uses the
+            # previous reference's tangent): go back to where it started and refactorise there
+            z, z_before, need_tangent = z_before, None, True
+            continue
         if not np.isfinite(rnorm):
             linsolve.forget()
             return z, False, "non-finite residual"
@@ -81,10 +92,10 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
             linsolve.forget()
             return z, False, f"diverging residual {rnorm:.3g}"
         if not need_tangent and r_prev is not None and rnorm > STALE_TANGENT_RATE * r_prev:
-            # the old tangent contracts too slowly here: refactorise at this state
+            # the old tangent contracts too slowly here (but it did contract): refactorise at this state
             need_tangent = True
             continue
-        if stats.newton_iterations_here >= fid.max_newton:
+        if budget_used >= fid.max_newton:
             break
         t0 = time.perf_counter()
         if need_tangent:
@@ -99,17 +110,20 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
         stats.linear_s += time.perf_counter() - t0
         stats.newton_iterations += 1
         stats.newton_iterations_here += 1
+        budget_used += 1.0 if fresh else MODIFIED_STEP_WEIGHT
         need_tangent = not reuse_factor
         r_prev = rnorm
         if not np.all(np.isfinite(dz)):
             linsolve.forget()
             return z, False, "singular tangent"
+        z_before = z
+        full_step_mm = float(np.abs(dz[:n_u_free]).max())
         if fresh:
             z, dz = _backtrack(problem, z, dz, pressure_pa, rnorm, stats)
         else:
             z = z.copy()
             z[free] += dz
-        if fresh and float(np.abs(dz[:n_u_free]).max()) <= du_tol:
+        if fresh and full_step_mm <= du_tol:
             R, _, min_J = problem.assemble(z, pressure_pa, with_tangent=False)
             rnorm = float(np.abs(R).max())
             stats.final_residual, stats.min_jacobian = rnorm, min_J

@@ -65,18 +65,18 @@ class ForwardResult:
 
 def forward_solve(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str = "accurate",
                   base: str = "sliding", linsolve: SparseSolver | None = None,
-                  initial_state: np.ndarray | None = None, fibres: str = "laplace",
-                  problem: MechanicsProblem | None = None) -> ForwardResult:
+                  initial_state: np.ndarray | None = None, fibres: str = "laplace") -> ForwardResult:
     """Inflate the stress-free `mesh` to ED pressure, from zero load with adaptive steps; or, given
     `initial_state` (a full unknown vector near the loaded equilibrium), by Newton at full load,
-    falling back to load stepping. Raises SolveError if it does not converge.
+    falling back to load stepping. Raises SolveError if it does not converge."""
+    problem = lv_problem(mesh, params, fidelity, base, fibres=fibres)
+    return _inflate_problem(problem, mesh, params, linsolve, initial_state)
 
-    `problem`: this mesh's problem for this case, already set up (the inverse's, on the unloaded
-    geometry it found), which spares building the sparsity and fibres again."""
-    if problem is None:
-        problem = lv_problem(mesh, params, fidelity, base, fibres=fibres)
-    elif not np.array_equal(problem.nodes[: mesh.n_nodes], mesh.nodes):
-        raise ValueError("the given problem is set up on another geometry than this mesh")
+
+def _inflate_problem(problem: MechanicsProblem, mesh: TetMesh, params: CaseParameters,
+                     linsolve: SparseSolver | None, initial_state: np.ndarray | None) -> ForwardResult:
+    """forward_solve on a problem already set up on `mesh` for this case (`make_pair` passes the
+    inverse's, on the unloaded geometry it found: no second sparsity and fibre build)."""
     z = None
     if initial_state is not None:
         try:
@@ -291,9 +291,8 @@ def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str
                                              fibres=fibres).unloaded_nodes
             guess_s = time.perf_counter() - t0
         inv = inverse_solve(ed_mesh, params, fid, base, initial_unloaded, linsolve=linsolve, fibres=fibres)
-        fwd = forward_solve(ed_mesh.with_nodes(inv.unloaded_nodes), params, fid, base, linsolve=linsolve,
-                            initial_state=None if forward_from_scratch else inv.state, fibres=fibres,
-                            problem=inv.problem)
+        fwd = _inflate_problem(inv.problem, ed_mesh.with_nodes(inv.unloaded_nodes), params, linsolve,
+                               None if forward_from_scratch else inv.state)
     if fwd.stats.min_jacobian <= 0 or not np.all(np.isfinite(fwd.loaded_nodes)):
         raise SolveError("forward solve of the unloaded geometry produced an invalid state")
     roundtrip = float(np.linalg.norm(fwd.loaded_nodes - ed_mesh.nodes, axis=1).max())

@@ -11,7 +11,7 @@ from solver.benchmarks import land1, land2
 from solver.elements import cell_quadrature
 from solver.fibres import fibre_frames, uniform_frames
 from solver.fidelity import PRESETS, get_fidelity
-from solver.forward import SolveError, inflate
+from solver.forward import SolveError, force_scale_of, inflate
 from solver.lv import forward_solve, inverse_solve, lv_problem, make_pair
 from solver.material import FungParameters, green_lagrange, guccione_stress_tangent
 from solver.mesh import boundary_facets, orient_positive
@@ -82,11 +82,13 @@ def test_euler_predictor_lands_closer_than_the_secant(coarse_lv):
     assert err_euler < 0.7 * err_secant  # measured 1.16 against 2.42 mm
 
 
-def test_modified_newton_budget_counts_solves_not_tangent_refreshes(coarse_lv):
-    """With a kept factorisation, a pass that finds the old tangent too slow only refactorises; the
-    Newton budget (max_newton) counts solves. Doubling the pressure from a converged state takes
-    10 solves over 13 passes: it must converge with max_newton = 10 (it failed when passes counted,
-    which sent an `accurate` inverse update back to load stepping from zero: 26 → 12 s for a pair)."""
+def test_modified_newton_budget_counts_full_steps_not_refreshes(coarse_lv):
+    """With a kept factorisation, Newton's budget (max_newton) counts full steps; a modified step,
+    which contracts only linearly, counts a third, and a pass that only refactorises or steps back
+    counts nothing. Doubling the pressure from a converged state with the old tangent takes 3
+    factorisations and 17 solves over 20 passes: it must converge with max_newton = 10 (it failed
+    when passes counted, which sent an `accurate` inverse update back to load stepping from zero:
+    26 → 12 s for a pair)."""
     from solver.linear import SparseSolver
 
     params = CaseParameters(8.0, 100.0, 60.0, -60.0)
@@ -97,8 +99,11 @@ def test_modified_newton_budget_counts_solves_not_tangent_refreshes(coarse_lv):
         linsolve.factorize(problem.assemble(z0, params.pressure_pa)[1])
         z, stats = inflate(problem, 2.0 * params.pressure_pa, z0=z0, start_load=1.0, linsolve=linsolve,
                            reuse_factor=True)
-    assert stats.newton_iterations <= fid.max_newton
-    assert len(stats.residual_history) > fid.max_newton + 1  # refresh passes happened
+        factorisations = linsolve.factorizations - 1
+    assert stats.final_residual <= fid.residual_rtol * force_scale_of(problem, 2.0 * params.pressure_pa)
+    assert factorisations <= fid.max_newton
+    assert stats.newton_iterations > fid.max_newton  # modified steps beyond the full-step budget
+    assert len(stats.residual_history) > stats.newton_iterations + 1  # refresh / step-back passes happened
 
 
 def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
@@ -122,6 +127,27 @@ def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
     np.testing.assert_allclose(step, 0.5 * dz)
     R_new, _, min_J = problem.assemble(z_new, pressure, with_tangent=False)
     assert min_J > 0 and np.abs(R_new).max() <= r0
+
+
+@pytest.mark.parametrize("params", [CaseParameters(14.0, 50.0, 60.0, -60.0), CaseParameters(8.0, 150.0, 60.0, -60.0)])
+def test_inverse_updates_never_restart_from_zero_load(coarse_lv, params, monkeypatch):
+    """Only the first solve of an inverse steps the load from zero; each update re-solves at full
+    load from the previous state. A modified-Newton step with the previous reference's tangent can
+    overshoot there (the first update moves the reference by the whole displacement): Newton must
+    go back and refactorise, not give up and restart the load stepping."""
+    import solver.lv as lv
+
+    starts = []
+    real_inflate = lv.inflate
+
+    def recording_inflate(problem, pressure_pa, z0=None, start_load=0.0, **kwargs):
+        starts.append(start_load)
+        return real_inflate(problem, pressure_pa, z0=z0, start_load=start_load, **kwargs)
+
+    monkeypatch.setattr(lv, "inflate", recording_inflate)
+    inv = lv.inverse_solve(coarse_lv, params, "fast")
+    assert inv.mismatch_mm <= 1e-4
+    assert starts[0] == 0.0 and all(s == 1.0 for s in starts[1:]), starts
 
 
 @pytest.mark.parametrize("order", [1, 2])
