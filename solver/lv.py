@@ -116,9 +116,10 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
 
     `reuse_factor`: each re-solve is modified Newton, keeping a factorised tangent while it still
     cuts the residual 4× per back-substitution (a re-solve starts close to its answer). For the
-    `fast` preset on an 800-node mesh this halves the factorisations of a chain of four warm-started
-    pairs (194 → 95) and its time by a third; load stepping from zero keeps full Newton, where
-    reuse cost more than it saved."""
+    `fast` preset on an 800-node mesh this halved the factorisations of a chain of four warm-started
+    pairs (194 → 95) and cut its time by a third; load stepping from zero keeps full Newton, where
+    reuse cost more than it saved. A step with the previous reference's tangent that makes things
+    worse steps back and refactorises (`forward._newton`)."""
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
     tol = fid.inverse_tol_mm if tol_mm is None else tol_mm
     t_start = time.perf_counter()
