@@ -16,7 +16,9 @@ MODIFIED_STEP_WEIGHT = 1.0 / 3.0  # a modified-Newton step's share of the iterat
 # only linearly (≥ 4× per step, else the tangent is refreshed), so it may take several where full Newton
 # takes one; it costs a residual assembly and a back-substitution, not a tangent and a factorisation
 BACKTRACK_STEPS = (1.0, 0.5, 0.25)  # fractions of a full Newton step tried in turn
-INTERMEDIATE_LOOSENESS = 1e4  # intermediate load steps: |R| ≤ 1e-5 P·area, |Δu| ≤ 1e-3 mm
+# intermediate load steps: |R| ≤ 1e-4 P·area, |Δu| ≤ 0.01 mm (only the last step's state is kept; the
+# final answer agrees with 1e4's to 3e-11 mm, in 426 instead of 478 factorisations over 33 forward solves)
+INTERMEDIATE_LOOSENESS = 1e5
 
 
 class SolveError(RuntimeError):
