@@ -46,8 +46,9 @@ class TetMesh:
 def _unique_faces(faces: np.ndarray, **kwargs):
     """np.unique over triangles as node sets (any order), returning only the `return_*` arrays.
 
-    Each triangle becomes one int64 (its sorted node numbers in base n), which sorts ~5× faster
-    than np.unique(axis=0) on rows; meshes with n³ ≥ 2⁶³ fall back to rows."""
+    Each triangle becomes one int64 (its sorted node numbers in base n), which sorts faster than
+    np.unique(axis=0) on rows (`folded_tets` on 921 nodes: 9.6 → 2.5 ms); meshes with n³ ≥ 2⁶³ fall
+    back to rows."""
     key = np.sort(faces, axis=1).astype(np.int64)
     n = int(key.max()) + 1 if key.size else 1
     if n < 2_000_000:  # n³ < 2⁶³

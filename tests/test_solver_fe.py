@@ -123,7 +123,7 @@ def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
     full[problem.free] += dz
     r0 = np.abs(R).max()
     assert np.abs(problem.assemble(full, pressure, with_tangent=False)[0]).max() > 2 * r0
-    z_new, step = _backtrack(problem, z, dz, pressure, r0, SolveStats())
+    z_new, step, _, _ = _backtrack(problem, z, dz, pressure, r0, SolveStats())
     np.testing.assert_allclose(step, 0.5 * dz)
     R_new, _, min_J = problem.assemble(z_new, pressure, with_tangent=False)
     assert min_J > 0 and np.abs(R_new).max() <= r0
