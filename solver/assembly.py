@@ -39,12 +39,48 @@ class Supports:
             raise ValueError(f"unknown gauge region {self.gauge_region!r}; choose base or volume")
 
 
+@dataclass(frozen=True)
+class ElementBlock:
+    """Dense per-element blocks of the matrix. Entry (e, a, i, b, j) couples the row dof
+    row_base + row_comps · row_nodes[e, a] + i (i < row_comps) with the column dof
+    col_base + col_comps · col_nodes[e, b] + j; `order` is the axis order of the block's values as
+    the assembly produces them (e.g. "eiajb" for values [e, i, a, j, b])."""
+
+    row_nodes: np.ndarray
+    col_nodes: np.ndarray
+    row_comps: int
+    col_comps: int
+    order: str
+    row_base: int = 0
+    col_base: int = 0
+
+    @property
+    def axes(self) -> list[int]:
+        """`order` as a transpose of the axes (e, a, b, i, j)."""
+        return ["eabij".index(ax) for ax in self.order]
+
+    def entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column of every entry, in `order` (what `SparsityPattern` takes)."""
+        rows, cols = self.dofs(self.row_nodes, self.col_nodes)
+        return rows.transpose(self.axes).ravel(), cols.transpose(self.axes).ravel()
+
+    def dofs(self, row_nodes: np.ndarray, col_nodes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Row and column dofs [E, m, n, ri, cj] (axes e, a, b, i, j) of nodes [E, m] and [E, n]."""
+        i = np.arange(self.row_comps)
+        j = np.arange(self.col_comps)
+        r = self.row_base + self.row_comps * row_nodes[:, :, None, None, None] + i[:, None]
+        c = self.col_base + self.col_comps * col_nodes[:, None, :, None, None] + j
+        shape = (len(row_nodes), row_nodes.shape[1], col_nodes.shape[1], i.size, j.size)
+        return np.broadcast_to(r, shape), np.broadcast_to(c, shape)
+
+
 class SparsityPattern:
     """COO entries → CSR data positions, built once; assembling is then one bincount.
 
     The pattern is scipy's canonical CSR of the kept entries (duplicates merged, column indices
     sorted); each entry's position is then read back from a CSR whose data are 0 … nnz − 1 (a binary
-    search per entry in C), about 2× faster than np.unique over the entry keys."""
+    search per entry in C), about 2× faster than np.unique over the entry keys. `from_blocks` does
+    that once per distinct node pair of each element block instead of once per entry."""
 
     def __init__(self, rows: np.ndarray, cols: np.ndarray, full_to_reduced: np.ndarray, n_reduced: int):
         r = full_to_reduced[rows]
@@ -62,6 +98,37 @@ class SparsityPattern:
         self.indptr = slots.indptr.astype(np.int32, copy=False)
         self.n = n_reduced
         self.nnz = slots.nnz
+
+    @classmethod
+    def from_blocks(cls, blocks: list[ElementBlock], rows: np.ndarray, cols: np.ndarray,
+                    full_to_reduced: np.ndarray, n_reduced: int) -> "SparsityPattern":
+        """The pattern of the blocks' entries (in block order, each in its `order`) followed by the
+        loose entries (rows, cols). Neighbouring elements share node pairs (an edge is in ~5 tets),
+        so each block's distinct node pairs are found first (np.unique over m·n keys per element,
+        not m·n·ri·cj) and only their entries are looked up; every entry then takes its node pair's
+        position. The same positions as the plain constructor (tested): on shape 0 at 800 nodes,
+        24 ms against 80 ms for the P1/P1 tangent's 0.6 M entries, 137 ms against 457 ms for
+        P2/P1's 2.9 M."""
+        distinct_rows, distinct_cols, inverses = [], [], []
+        for block in blocks:
+            n_cols = int(block.col_nodes.max(initial=0)) + 1
+            keys = block.row_nodes[:, :, None].astype(np.int64) * n_cols + block.col_nodes[:, None, :]
+            pairs, inverse = np.unique(keys.ravel(), return_inverse=True)
+            r, c = block.dofs(*(v[:, None] for v in np.divmod(pairs, n_cols)))  # [pairs, 1, 1, ri, cj]
+            distinct_rows.append(r.ravel())
+            distinct_cols.append(c.ravel())
+            inverses.append(inverse.reshape(keys.shape))
+        pattern = cls(np.concatenate(distinct_rows + [rows]), np.concatenate(distinct_cols + [cols]),
+                      full_to_reduced, n_reduced)
+        positions, start = [], 0
+        for block, inverse, r in zip(blocks, inverses, distinct_rows):
+            table = pattern.position[start: start + r.size].reshape(-1, block.row_comps, block.col_comps)
+            positions.append(table[inverse].transpose(block.axes).ravel())  # [e, a, b, i, j] → order
+            start += r.size
+        positions.append(pattern.position[start:])
+        pattern.position = np.concatenate(positions)
+        pattern.keep = pattern.position < pattern.nnz
+        return pattern
 
     def matrix(self, values: np.ndarray) -> sp.csr_matrix:
         data = np.bincount(self.position, weights=values, minlength=self.nnz + 1)[: self.nnz]
@@ -126,6 +193,8 @@ class MechanicsProblem:
         self.frames = frames
         # the Fung exponent's weights B_ab per pair a ≤ b, as the material tangent uses them
         B = self.material.exponent_weights()
+        if not np.array_equal(B, B.T):
+            raise ValueError("the Fung exponent weights B must be symmetric (Q = Σ B_ab E_ab²)")
         self._pair_weights = np.where(_PAIR_A == _PAIR_B, 0.25, 0.5) * B[_PAIR_A, _PAIR_B]
         if self.mixed and fid.stabilization > 0:
             h2 = (6.0 * np.sqrt(2.0) * np.abs(self.cq.volumes)) ** (2.0 / 3.0)
@@ -200,29 +269,32 @@ class MechanicsProblem:
 
     # --- sparsity ----------------------------------------------------------------------------
     def _build_pattern(self) -> None:
-        """Entry rows and columns in the order the tangent's blocks are computed: Kuu as
-        [e, i, a, j, b] (`_material_block`) and the follower-load block as [f, b, c, i, j]."""
-        cu = self.cell_udofs
-        nu = cu.shape[1]
-        uu = _block_entries(cu.reshape(len(cu), nu // 3, 3).transpose(0, 2, 1), (1, 2), (3, 4))
-        fu = self.facet_udofs
-        ff = _block_entries(fu.reshape(len(fu), fu.shape[1] // 3, 3), (1, 3), (2, 4))
-        rows, cols = [uu[0], ff[0]], [uu[1], ff[1]]
+        rows, cols = self.pattern_loose_entries()
+        self.pattern = SparsityPattern.from_blocks(self.pattern_blocks(), rows, cols, self.full_to_reduced,
+                                                   self.free.size)
+
+    def pattern_blocks(self) -> list[ElementBlock]:
+        """The tangent's element blocks in the order `_assemble` concatenates their values: Kuu as
+        [e, i, a, j, b] (`_material_block`), the follower-load block as [f, b, c, i, j], the spring
+        as [f, b, i, c, j], K_up as [e, a, i, c], K_pu with the same values, K_pp as [e, c, d]."""
+        cell_nodes = self.dofmap.cell_dofs
+        blocks = [ElementBlock(cell_nodes, cell_nodes, 3, 3, "eiajb"),
+                  ElementBlock(self.pdofs, self.pdofs, 3, 3, "eabij")]
         if self._spring is not None:
-            su = self._spring_udofs
-            rows.append(np.repeat(su, su.shape[1], axis=1).ravel())
-            cols.append(np.tile(su, (1, su.shape[1])).ravel())
+            spring_nodes = self._spring_udofs[:, ::3] // 3
+            blocks.append(ElementBlock(spring_nodes, spring_nodes, 3, 3, "eaibj"))
         if self.mixed:
-            cp = self.n_u + self.tets
-            up_r = np.repeat(cu, 4, axis=1).ravel()
-            up_c = np.tile(cp, (1, nu)).ravel()
-            rows += [up_r, up_c, np.repeat(cp, 4, axis=1).ravel()]
-            cols += [up_c, up_r, np.tile(cp, (1, 4)).ravel()]
-        if self.n_gauge:
-            g_rows = self.n_u + self.n_p + self._gauge_r
-            rows += [g_rows, self._gauge_cols]
-            cols += [self._gauge_cols, g_rows]
-        self.pattern = SparsityPattern(np.concatenate(rows), np.concatenate(cols), self.full_to_reduced, self.free.size)
+            blocks += [ElementBlock(cell_nodes, self.tets, 3, 1, "eaibj", col_base=self.n_u),
+                       ElementBlock(self.tets, cell_nodes, 1, 3, "ebjai", row_base=self.n_u),
+                       ElementBlock(self.tets, self.tets, 1, 1, "eaibj", self.n_u, self.n_u)]
+        return blocks
+
+    def pattern_loose_entries(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns of the entries after the blocks: the gauge constraints' (if any)."""
+        if not self.n_gauge:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        g_rows = self.n_u + self.n_p + self._gauge_r
+        return np.concatenate([g_rows, self._gauge_cols]), np.concatenate([self._gauge_cols, g_rows])
 
     # --- state helpers -----------------------------------------------------------------------
     def split(self, z_full: np.ndarray):
@@ -366,21 +438,6 @@ def _material_block(grads: np.ndarray, A: np.ndarray, dV: np.ndarray) -> np.ndar
     GA = (grads * dV[..., None, None])[:, :, None] @ A.reshape(ne, nq, 3, 3, 9)  # [e, q, i, a, (j J)]
     K = GA.reshape(ne, nq, 3 * na * 3, 3) @ np.swapaxes(grads, -1, -2)  # [e, q, (i a j), b]
     return K.sum(axis=1) if nq > 1 else K[:, 0]
-
-
-def _block_entries(dofs: np.ndarray, row_axes: tuple[int, int], col_axes: tuple[int, int]):
-    """Row and column of each entry of per-element blocks K[e, ·, ·, ·, ·] (raveled), where
-    `dofs` [e, m, n] numbers the element's dofs and K's axes `row_axes` (resp. `col_axes`) index
-    dofs[e, ·, ·] of the entry's row (resp. column), in dofs' axis order."""
-    ne, m, n = dofs.shape
-    shape = [ne, 0, 0, 0, 0]
-    for axes in (row_axes, col_axes):
-        shape[axes[0]], shape[axes[1]] = m, n
-    def spread(axes):
-        view = [ne, 1, 1, 1, 1]
-        view[axes[0]], view[axes[1]] = m, n
-        return np.broadcast_to(dofs.reshape(view), shape).ravel()
-    return spread(row_axes), spread(col_axes)
 
 
 def _det_cofactor(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -119,8 +119,10 @@ def tet_geometry(nodes: np.ndarray, tets: np.ndarray):
 
     With edges e_k = x_k − x_0, the rows of [e_1 e_2 e_3]⁻¹ (the gradients of λ_1..3) are
     e_2 × e_3, e_3 × e_1, e_1 × e_2 over det = e_1 · (e_2 × e_3): 0.6 ms against 1.8 ms with
-    np.linalg.det + inv on 2,786 tets. A flat tet gives non-finite gradients (callers check
-    volumes first) instead of raising."""
+    np.linalg.det + inv on 2,786 tets. A flat tet gives non-finite gradients instead of raising
+    (np.linalg.inv raised only for some float-coplanar tets anyway): meshes are checked for
+    zero-volume tets where they enter (`mesh.check_geometry`: files, the network's guesses, each
+    inverse update's trial reference)."""
     x = nodes[tets]
     e1, e2, e3 = x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]
     g = np.empty((tets.shape[0], 4, 3))
@@ -128,7 +130,7 @@ def tet_geometry(nodes: np.ndarray, tets: np.ndarray):
     det = np.einsum("ei,ei->e", e1, g[:, 1])
     with np.errstate(divide="ignore", invalid="ignore"):
         g[:, 1:] /= det[:, None, None]
-    g[:, 0] = -g[:, 1:].sum(axis=1)
+        g[:, 0] = -g[:, 1:].sum(axis=1)
     return det / 6.0, g
 
 

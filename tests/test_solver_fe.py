@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from skfem import MeshTet
 
-from solver.assembly import MechanicsProblem, Supports
+from solver.assembly import MechanicsProblem, SparsityPattern, Supports
 from solver.benchmarks import land1, land2
 from solver.elements import cell_quadrature
 from solver.fibres import fibre_frames, uniform_frames
@@ -28,9 +28,12 @@ def coarse_lv():
 
 
 @pytest.mark.parametrize("preset", PRESET_NAMES)
-@pytest.mark.parametrize("base", ["sliding", "clamped", "spring"])
+@pytest.mark.parametrize("base", ["sliding", "clamped", "spring", "heartfem", "custom B"])
 def test_assembled_tangent_matches_finite_differences(coarse_lv, preset, base):
-    problem = lv_problem(coarse_lv, CaseParameters(10.0, 100.0, 65.0, -65.0), preset, base)
+    """"custom B": Fung exponents with every weight distinct (the tangent's pair form needs only B = Bᵀ)."""
+    material = FungParameters(100.0, b_ff=17.0, b_xx=5.0, b_fx=11.0) if base == "custom B" else None
+    problem = lv_problem(coarse_lv, CaseParameters(10.0, 100.0, 65.0, -65.0), preset,
+                         "sliding" if base == "custom B" else base, material=material)
     rng = np.random.default_rng(3)
     z = problem.zeros()
     z[problem.free] = rng.normal(size=problem.free.size)
@@ -47,6 +50,24 @@ def test_assembled_tangent_matches_finite_differences(coarse_lv, preset, base):
     fd = (Rp - Rm) / 2.0
     an = K @ d[problem.free]
     assert np.abs(fd - an).max() <= 1e-6 * np.abs(an).max()
+
+
+@pytest.mark.parametrize("preset,base", [("fast", "sliding"), ("fast", "heartfem"), ("accurate", "spring")])
+def test_block_pattern_places_every_entry_where_the_plain_pattern_does(coarse_lv, preset, base):
+    """SparsityPattern.from_blocks (distinct node pairs first) against the per-entry constructor
+    over the same entries: the same CSR and the same position for every entry."""
+    problem = lv_problem(coarse_lv, CaseParameters(10.0, 100.0, 65.0, -65.0), preset, base)
+    blocks = problem.pattern_blocks()
+    rows, cols = zip(*(block.entries() for block in blocks))
+    loose_rows, loose_cols = problem.pattern_loose_entries()
+    plain = SparsityPattern(np.concatenate(rows + (loose_rows,)), np.concatenate(cols + (loose_cols,)),
+                            problem.full_to_reduced, problem.free.size)
+    fast = problem.pattern
+    assert len(blocks) >= 5 and fast.position.size == plain.position.size
+    np.testing.assert_array_equal(fast.indptr, plain.indptr)
+    np.testing.assert_array_equal(fast.indices, plain.indices)
+    np.testing.assert_array_equal(fast.position, plain.position)
+    assert fast.keep.sum() < fast.keep.size  # supported dofs' entries go to the dropped slot
 
 
 @pytest.mark.parametrize("preset", PRESET_NAMES)
