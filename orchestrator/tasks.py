@@ -53,14 +53,15 @@ def robust_fidelity(fidelity):
 
 
 def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = True,
-             fibres: str = "laplace", initial_unloaded: np.ndarray | None = None) -> dict:
+             fibres: str = "laplace", initial_unloaded: np.ndarray | None = None, workspace=None) -> dict:
     """One training pair: inverse then forward FE. A solver failure (SolveError, or an inverted
     trial geometry) is retried once with `robust_fidelity`, from the ED mesh (never from
     `initial_unloaded`); if that fails too the result says so (ok False, reason) — this function does
     not raise for a case that will not solve.
 
     mesh: solver TetMesh (the ED geometry); params: (P mmHg, C Pa, θendo °, θepi °) or CaseParameters;
-    initial_unloaded: a starting unloaded geometry [n, 3] mm for the first attempt (warm start).
+    initial_unloaded: a starting unloaded geometry [n, 3] mm for the first attempt (warm start);
+    workspace: a `solver.lv.PairWorkspace` on this mesh for the first attempt (the retry builds its own).
     Returns ok, unloaded/loaded [n,3] (mm, float64) or None, stats (the pair's), reason, attempts,
     host, pid, started_at / finished_at (unix s), task_wall_s.
     """
@@ -76,12 +77,13 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     if not isinstance(params, CaseParameters):
         params = CaseParameters(*(float(v) for v in params))
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
-    settings = [(fid, initial_unloaded), (robust_fidelity(fid), None)] if retry else [(fid, initial_unloaded)]
+    settings = [(fid, initial_unloaded, workspace), (robust_fidelity(fid), None, None)]
+    settings = settings if retry else settings[:1]
     pair, reasons, attempts = None, [], 0
-    for setting, guess in settings:
+    for setting, guess, shared in settings:
         attempts += 1
         try:
-            pair = make_pair(mesh, params, setting, base, initial_unloaded=guess, fibres=fibres)
+            pair = make_pair(mesh, params, setting, base, initial_unloaded=guess, fibres=fibres, workspace=shared)
             break
         except (SolveError, MeshError) as exc:
             reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
@@ -110,25 +112,27 @@ def run_chain(mesh, params_list, fidelity: str, base: str = "sliding", fibres: s
     increasing pressure): with `warm_start`, each inverse starts from the unloaded geometry
     extrapolated in pressure from the chain's cases solved so far (`solver.lv.unloaded_guess`), which
     converges to the same tolerance in fewer iterations. A guess that folds an element is dropped (the
-    case then starts from its ED mesh). Returns one `run_case` result per case, in order."""
+    case then starts from its ED mesh). The cases share one `PairWorkspace` (FE problem and sparse
+    solver). Returns one `run_case` result per case, in order."""
     _single_thread()
-    from solver.lv import unloaded_guess
+    from solver.lv import PairWorkspace, unloaded_guess
     from solver.mesh import MeshError, check_geometry
 
     solved, results = [], []
-    for params in params_list:
-        pressure = float(params[0] if not hasattr(params, "pressure_mmhg") else params.pressure_mmhg)
-        guess = unloaded_guess(solved, pressure) if warm_start else None
-        if guess is not None:
-            try:
-                check_geometry(guess, mesh.tets)
-            except MeshError:
-                guess = None
-        res = run_case(mesh, params, fidelity, base, fibres=fibres, initial_unloaded=guess)
-        res["warm_start"] = guess is not None
-        if res["ok"]:
-            solved.append((pressure, res["unloaded"]))
-        results.append(res)
+    with PairWorkspace(mesh) as workspace:
+        for params in params_list:
+            pressure = float(params[0] if not hasattr(params, "pressure_mmhg") else params.pressure_mmhg)
+            guess = unloaded_guess(solved, pressure) if warm_start else None
+            if guess is not None:
+                try:
+                    check_geometry(guess, mesh.tets)
+                except MeshError:
+                    guess = None
+            res = run_case(mesh, params, fidelity, base, fibres=fibres, initial_unloaded=guess, workspace=workspace)
+            res["warm_start"] = guess is not None
+            if res["ok"]:
+                solved.append((pressure, res["unloaded"]))
+            results.append(res)
     return results
 
 

@@ -3,6 +3,8 @@ each inverse starts from the unloaded geometry extrapolated from the chain's low
 warm start must change the cost, never the answer (beyond the inverse tolerance). No Ray here."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -178,3 +180,29 @@ def test_which_task_failures_leave_their_cases_pending():
     own = ray.exceptions.RayTaskError("run_chain", "Traceback …", KeyError("params"))
     assert not _lost_to_infrastructure(own)
     assert _error_line(own) == "KeyError: 'params'"
+
+
+def test_a_workspace_builds_one_problem_and_one_analysis_and_changes_no_answer(mesh):
+    """Pairs solved through one PairWorkspace (as a chain's are) reuse its FE problem and PARDISO's
+    analysis, and land on the same unloaded geometry as pairs that build their own."""
+    from solver.lv import PairWorkspace, make_pair
+    from solver.parameters import CaseParameters
+
+    cases = [CaseParameters(*c) for c in CHAIN[:2]] + [CaseParameters(8.0, 100.0, 70.0, -70.0)]
+    with PairWorkspace(mesh) as workspace:
+        shared = [make_pair(mesh, p, "fast", workspace=workspace) for p in cases]
+        analysis = workspace.linsolve._pattern_key
+        assert len(workspace._problems) == 1  # same preset, base, fibres and C: one problem
+        other = workspace.problem(mesh, CaseParameters(8.0, 300.0, 60.0, -60.0), get_fidelity("fast"),
+                                  "sliding", "laplace")
+        assert len(workspace._problems) == 2 and other is not shared[0].inverse.problem
+        with pytest.raises(ValueError, match="topology"):
+            workspace.problem(replace(mesh, tets=mesh.tets[::-1].copy()), cases[0], get_fidelity("fast"),
+                              "sliding", "laplace")
+    assert all(pair.inverse.problem is shared[0].inverse.problem for pair in shared)
+    assert workspace.linsolve.backend != "pardiso" or analysis is not None  # one analysis, kept
+    assert workspace.linsolve._pardiso is None and not workspace.linsolve.has_factor  # freed on leaving
+    for pair, params in zip(shared, cases):
+        alone = make_pair(mesh, params, "fast")
+        assert np.abs(pair.unloaded_nodes - alone.unloaded_nodes).max() < 1e-9
+        assert np.abs(pair.loaded_nodes - alone.loaded_nodes).max() < 1e-9
