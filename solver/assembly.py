@@ -12,7 +12,6 @@ from .elements import build_dofmap, cell_quadrature, facet_dofs, facet_quadratur
 from .fidelity import Fidelity
 from .material import FungParameters, green_lagrange, guccione_stress_tangent
 
-_EYE9 = np.eye(9)
 # the six fibre-frame index pairs a ≤ b (f, s, n) of the material tangent's symmetric part
 _PAIR_A = np.array([0, 1, 2, 0, 0, 1])
 _PAIR_B = np.array([0, 1, 2, 1, 2, 2])
@@ -410,7 +409,8 @@ class MechanicsProblem:
         Kuu = _material_block(cq.grads, A, dV)
         # pressure-load tangent: d n / d x_c = −ξ1_c [a2]x + ξ2_c [a1]x, as [f, b, c, i, j]
         sk1, sk2 = _skew(a1), _skew(a2)
-        dn = fq.dxi[:, 1].T[None, :, :, None, None] * sk1[:, :, None] - fq.dxi[:, 0].T[None, :, :, None, None] * sk2[:, :, None]
+        d1, d2 = (fq.dxi[:, k].T[None, :, :, None, None] for k in (0, 1))  # [1, q, c, 1, 1]
+        dn = d2 * sk1[:, :, None] - d1 * sk2[:, :, None]
         Kf = (pressure_pa * fq.values * fq.weights) @ dn.reshape(*dn.shape[:2], 9 * dn.shape[2])
         values = [Kuu.ravel(), Kf.ravel()]
         if self._spring is not None:

@@ -60,8 +60,8 @@ class PairWorkspace:
     """What consecutive pairs on one ED mesh share: the FE problem of each (preset, base, fibre rule,
     stiffness), so its sparsity pattern and P2 dof map are built once, and the sparse solver, so
     PARDISO's analysis is done once. `orchestrator.tasks.run_chain` keeps one per pressure chain:
-    on an 800-node mesh a chain's `fast` pairs took 0.31 s instead of 0.39 s each, with the same
-    unloaded geometry to 3e-14 mm. A problem it hands out is re-pointed (`set_reference`) by the next
+    on 800-node meshes (a prototype of this) a chain's `fast` pairs took 0.31 s instead of 0.39 s
+    each, with the same unloaded geometry to 3e-14 mm. A problem it hands out is re-pointed (`set_reference`) by the next
     pair. Use it as a context manager: leaving frees the solver's memory."""
 
     def __init__(self, ed_mesh: TetMesh):
