@@ -120,7 +120,9 @@ def _busy_case_workers() -> list[int]:
 
 def test_killed_worker_sweep_still_finishes(ray_cluster, tmp_path):
     loc = str(tmp_path / "w.zarr")
-    sp = spec(pressure_mmhg=(6.0, 8.0, 10.0, 12.0), stiffness_pa=(100.0, 200.0))
+    # four chains of four pairs, two in flight, so that workers are still mid-chain when the first
+    # events arrive (with two chains, a faster solver could finish both before the first event)
+    sp = spec(pressure_mmhg=(6.0, 8.0, 10.0, 12.0), stiffness_pa=(50.0, 100.0, 200.0, 300.0))
     killed = []
 
     def on_event(ev):
