@@ -770,6 +770,10 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                    f"of it): {r['response_ms_per_mesh']:.1f} ms")
     typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "
                f"{r['train_graphs_per_s']:.1f} graphs/s")
+    bb = r["batch_building"]
+    typer.echo(f"building a batch of {r['train_batch']}: {bb['table_ms']:.2f} ms from the training loop's graph table "
+               f"(on {bb['table_device']}), {bb['pyg_ms']:.2f} ms by PyG's collation and copy; a step with its batch "
+               f"built: {bb['loop_step_ms']:.0f} ms, {r['loop_graphs_per_s']:.1f} graphs/s")
 
 
 @bench_app.command("ablation")

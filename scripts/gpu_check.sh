@@ -12,7 +12,7 @@ export PYTHONPATH="$PWD:$PWD/.gpu/site${PYTHONPATH:+:$PYTHONPATH}"
 $PY -m pip install -q --no-index --no-deps --target .gpu/site .gpu/wheels/*.whl 2>&1 | tail -2
 [ "$DEVICE" = cuda ] && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
 $PY -c "import torch, torch_geometric; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'pyg', torch_geometric.__version__)"
-$PY -m pytest -q -p no:cacheprovider tests/test_trainer_sparse_gat.py 2>&1 | tail -3
+$PY -m pytest -q -p no:cacheprovider tests/test_trainer_sparse_gat.py tests/test_trainer_batching.py 2>&1 | tail -3
 for kernel in sparse pyg; do
   for prec in "" "--bf16"; do
     echo "== bench model --gat-kernel $kernel $prec"

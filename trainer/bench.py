@@ -1,5 +1,7 @@
 """`heartctl bench model`: inference ms per case at several batch sizes and training graphs/s for
-a configured model on a real LV mesh, in plain PyTorch (no Ray): eager, or with torch.compile."""
+a configured model on a real LV mesh, in plain PyTorch (no Ray): eager, or with torch.compile. The
+training step is timed on a batch already built, and again with its batch built each step from a
+GraphTable as the training loop does (beside PyG's collation of the same batch, for comparison)."""
 from __future__ import annotations
 
 import time
@@ -13,6 +15,7 @@ from storage.store import PARAM_NAMES
 
 from ._malloc import tune_allocator
 from .averaging import WeightAverage
+from .batching import GraphTable, table_device
 from .config import TrainerError, named_config
 from .data import MeshFeatures, Normalisation, case_graph, mesh_features
 from .model import build_model, count_parameters, loss_terms
@@ -105,7 +108,19 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     prepared_row = {"ms_per_case": s * 1e3, "cuda_graph": prepared.cuda_graph is not None,
                     "capture_error": prepared.capture_error}
     tb = train_batch or (128 if dev.type == "cuda" else 32)
-    data = Batch.from_data_list([graph() for _ in range(tb)]).to(dev)
+    pool = [graph() for _ in range(2 * tb)]  # the cases batches are drawn from, as in an epoch
+    table = GraphTable(pool, table_device(pool, dev))
+    pick = np.random.default_rng(seed + 1)
+
+    def draw() -> list:
+        return pick.choice(len(pool), tb, replace=False).tolist()
+
+    def pyg_batch():
+        return Batch.from_data_list([pool[i] for i in draw()]).to(dev, non_blocking=True)
+
+    building = {"pyg_ms": _timed(pyg_batch, dev, min_s) * 1e3,
+                "table_ms": _timed(lambda: table.batch(draw()), dev, min_s) * 1e3, "table_device": str(table.device)}
+    data = table.batch(draw())
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
     average = WeightAverage(model, cfg.ema_decay) if cfg.ema_decay > 0 else None
@@ -121,10 +136,18 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
             average.update(model)
 
     s = _timed(step, dev, min_s, min_runs=2, first=compile_s)
+
+    def loop_step():  # the training loop's step with its batch built from the table
+        nonlocal data
+        data = table.batch(draw())
+        step()
+
+    building["loop_step_ms"] = _timed(loop_step, dev, min_s, min_runs=2) * 1e3
     return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
             "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows,
             "prepared_single": prepared_row, "response_ms_per_mesh": response_ms, "train_batch": tb,
             "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": cfg.cycle,
+            "batch_building": building, "loop_graphs_per_s": tb / building["loop_step_ms"] * 1e3,
             "compiled": bool(compile_model), "compile_s": sum(compile_s) if compile_model else 0.0}

@@ -16,6 +16,7 @@ import torch
 from ._malloc import tune_allocator
 from .augment import rotate_batch, scale_batch
 from .averaging import WeightAverage
+from .batching import GraphTable, chunks, table_device
 from .checkpoint import check_resume_parts, cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
 from .config import TrainConfig, TrainerError, TrainingDiverged
 from .data import DataBundle, check_fingerprint, training_data
@@ -72,24 +73,38 @@ def _all_reduce(values: list, dist: Dist) -> list:
 
 
 def _move(batch, device):
-    """Ray's prepare_data_loader does not move a PyG Batch; the loop does it here."""
+    """Ray's prepare_data_loader does not move a PyG Batch; the loop does it here (a no-op for a
+    batch built on the device from a GraphTable there)."""
     return batch.to(device, non_blocking=True)
+
+
+class TableLoader:
+    """The batches of a GraphTable in the order a batch sampler gives them (lists of indices)."""
+
+    def __init__(self, table: GraphTable, batch_sampler):
+        self.table, self.batch_sampler = table, batch_sampler
+
+    def __iter__(self):
+        return self.table.batches(self.batch_sampler)
+
+    def __len__(self) -> int:
+        return len(self.batch_sampler)
 
 
 def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
     """Training loader (mixed labelled/unlabelled batches when SR < 1, see trainer.sampling),
-    its sampler (set_epoch) and the validation loader."""
-    from torch.utils.data import RandomSampler
+    its sampler (set_epoch) and the validation loader; both build their batches from a GraphTable
+    (trainer.batching), in the order PyG's DataLoader would with the same sampler."""
+    from torch.utils.data import BatchSampler, RandomSampler
     from torch.utils.data.distributed import DistributedSampler
-    from torch_geometric.loader import DataLoader
 
-    pin = dist.device.type == "cuda"
     flags = [bool(g.labelled.item()) for g in bundle.train]
     n_lab = labelled_per_batch(cfg.batch_size, cfg.sr, cfg.labelled_share)
+    table = GraphTable(bundle.train, table_device(bundle.train, dist.device))
     if n_lab and any(flags) and not all(flags):
         train_sampler = MixedBatchSampler([i for i, f in enumerate(flags) if f], [i for i, f in enumerate(flags) if not f],
                                           cfg.batch_size, n_lab, cfg.seed, dist.rank, dist.world)
-        train = DataLoader(bundle.train, batch_sampler=train_sampler, pin_memory=pin)
+        train = TableLoader(table, train_sampler)
     else:
         if dist.world > 1:
             train_sampler = DistributedSampler(bundle.train, num_replicas=dist.world, rank=dist.rank, shuffle=True,
@@ -98,9 +113,10 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
             gen = torch.Generator()
             train_sampler = RandomSampler(bundle.train, generator=gen)
             train_sampler.set_epoch = lambda epoch: gen.manual_seed(cfg.seed * 100003 + epoch)  # type: ignore[attr-defined]
-        train = DataLoader(bundle.train, batch_size=cfg.batch_size, sampler=train_sampler, pin_memory=pin)
+        train = TableLoader(table, BatchSampler(train_sampler, cfg.batch_size, drop_last=False))
     shard = validation_shard(bundle.val, dist.rank, dist.world)
-    val = DataLoader(shard, batch_size=cfg.batch_size, shuffle=False, pin_memory=pin) if shard else None
+    val = TableLoader(GraphTable(shard, table_device(shard, dist.device)), chunks(len(shard), cfg.batch_size)) \
+        if shard else None
     return train, train_sampler, val
 
 
@@ -118,7 +134,8 @@ def _autocast(cfg: TrainConfig, device: torch.device):
 def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float) -> tuple[float, float, int]:
     """(val MSE in normalised units, mean node error mm, validation nodes) over the validation cases of
     all ranks; NaN, NaN, 0 without validation cases."""
-    sq = ab = n = 0.0
+    acc = torch.zeros(2, dtype=torch.float64, device=dist.device)  # Σ|d|², Σ|d|: summed on the device
+    n = 0
     if loader is not None:
         model.eval()
         with torch.no_grad(), _autocast(cfg, dist.device):
@@ -126,10 +143,9 @@ def _validate(model, loader, cfg: TrainConfig, dist: Dist, disp_scale_mm: float)
                 batch = _move(batch, dist.device)
                 d_unl, _ = model(batch, cycle=False)
                 diff = d_unl.float() - batch.y
-                sq += float(diff.pow(2).sum())
-                ab += float(diff.norm(dim=1).sum())
+                acc += torch.stack([diff.pow(2).sum(), diff.norm(dim=1).sum()]).double()
                 n += diff.shape[0]
-    sq, ab, n = _all_reduce([sq, ab, n], dist)
+    sq, ab, n = _all_reduce(acc.tolist() + [n], dist)
     if n == 0:
         return math.nan, math.nan, 0
     return sq / (3 * n), ab / n * disp_scale_mm, int(n)
@@ -297,7 +313,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                 group["lr"] = cosine_lr(epoch, cfg.epochs, cfg.lr)
         sampler.set_epoch(epoch)
         wrapped.train()
-        sums = [0.0, 0.0, 0.0, 0.0]  # loss·graphs, sup·graphs, cycle·graphs, graphs
+        acc = torch.zeros(3, dtype=torch.float64, device=dist.device)  # loss·graphs, sup·graphs, cycle·graphs
+        n_graphs = 0  # summed on the device: no step waits for the GPU to report its loss
         seed_epoch(cfg.seed, epoch, dist.rank)
         aug_gen = torch.Generator().manual_seed((cfg.seed * 100003 + epoch) * 1009 + dist.rank)
         for batch in train_loader:
@@ -312,11 +329,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             if average is not None:
                 average.update(model)
             g = batch.num_graphs
-            sums[0] += float(terms["loss"].detach()) * g
-            sums[1] += float(terms["sup"].detach()) * g
-            sums[2] += float(terms["cycle"].detach()) * g
-            sums[3] += g
-        sums = _all_reduce(sums, dist)
+            acc += torch.stack([terms[k].detach().double() for k in ("loss", "sup", "cycle")]) * g
+            n_graphs += g
+        sums = _all_reduce(acc.tolist() + [n_graphs], dist)
         train_loss = sums[0] / max(sums[3], 1)
         val_loss, val_md, n_val = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
         if not math.isfinite(train_loss) or (n_val and not math.isfinite(val_loss)):

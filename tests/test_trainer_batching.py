@@ -1,0 +1,88 @@
+"""GraphTable batches equal PyG's collation field by field (two meshes of different sizes, labels
+withheld, the linear response), the loop's loaders visit the cases in the order PyG's DataLoader
+would, and bad tables are refused."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import BatchSampler, RandomSampler
+from torch_geometric.data import Batch
+from torch_geometric.loader import DataLoader
+
+from trainer.batching import GraphTable, chunks
+from trainer.data import Normalisation, case_graph, mesh_features
+from trainer.loop import TableLoader
+from trainer_fixtures import lv_mesh, synthetic_unloaded
+
+
+def _graphs(response: bool) -> list:
+    """20 cases on two meshes (~120 and ~160 nodes), alternating; every third unlabelled."""
+    feats = [mesh_features(lv_mesh(0)), mesh_features(lv_mesh(1, nodes=160))]
+    assert feats[0].ed_mm.shape[0] != feats[1].ed_mm.shape[0]
+    norm = Normalisation(tuple(feats[0].ed_mm.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
+    out = []
+    for i in range(20):
+        f = feats[i % 2]
+        p, c = 4.0 + i % 5 * 2.5, 50.0 + 25.0 * i
+        out.append(case_graph(f, [p, c, 60.0 + i % 3, -65.0], norm, synthetic_unloaded(f.ed_mm, p, c),
+                              labelled=i % 3 != 0, key=(i % 2, i), response=response))
+    return out
+
+
+def assert_same_batch(a: Batch, b: Batch) -> None:
+    assert sorted(a.keys()) == sorted(b.keys())
+    for k in b.keys():
+        assert a[k].dtype == b[k].dtype and a[k].shape == b[k].shape, k
+        assert torch.equal(torch.nan_to_num(a[k].cpu(), nan=-7.0), torch.nan_to_num(b[k].cpu(), nan=-7.0)), k
+    assert a.num_graphs == b.num_graphs
+
+
+@pytest.mark.parametrize("response", [False, True])
+def test_table_batch_equals_pyg_collation(response):
+    graphs = _graphs(response)
+    table = GraphTable(graphs)
+    assert table.n_topologies == 2 and len(table) == 20
+    rng = np.random.default_rng(3)
+    orders = [rng.permutation(20)[:7], [5], [3, 3, 8], list(range(20))]  # repeats, one graph, all
+    for order in orders:
+        assert_same_batch(table.batch(order), Batch.from_data_list([graphs[i] for i in order]))
+    b = table.batch([1, 0])
+    assert b.ptr.tolist() == [0, graphs[1].num_nodes, graphs[1].num_nodes + graphs[0].num_nodes]
+    assert torch.isnan(b.y[b.ptr[1]:]).all() and not torch.isnan(b.y[:b.ptr[1]]).any()  # case 0 unlabelled
+
+
+def test_table_loader_visits_cases_like_pyg_dataloader():
+    graphs = _graphs(False)
+    gen_a, gen_b = torch.Generator().manual_seed(11), torch.Generator().manual_seed(11)
+    pyg = DataLoader(graphs, batch_size=6, sampler=RandomSampler(graphs, generator=gen_a))
+    ours = TableLoader(GraphTable(graphs), BatchSampler(RandomSampler(graphs, generator=gen_b), 6, drop_last=False))
+    assert len(ours) == len(pyg) == 4
+    for a, b in zip(ours, pyg, strict=True):
+        assert_same_batch(a, b)
+    val = TableLoader(GraphTable(graphs[:7]), chunks(7, 3))
+    assert [b.key[:, 1].tolist() for b in val] == [[0, 1, 2], [3, 4, 5], [6]]
+
+
+def test_bad_tables_are_refused():
+    graphs = _graphs(False)
+    with pytest.raises(ValueError, match="at least one graph"):
+        GraphTable([])
+    with pytest.raises(ValueError, match="same attributes"):
+        GraphTable([graphs[0], _graphs(True)[1]])
+    odd = graphs[0].clone()
+    odd.extra = torch.zeros(3)
+    with pytest.raises(ValueError, match="got attributes"):
+        GraphTable([odd])
+    with pytest.raises(ValueError, match="at least one graph"):
+        GraphTable(graphs).batch([])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_table_on_cuda_equals_host_collation():
+    graphs = _graphs(True)
+    table = GraphTable(graphs, "cuda")
+    order = [4, 1, 1, 18, 7]
+    b = table.batch(order)
+    assert b.x.is_cuda and b.edge_index.is_cuda and b.ptr.is_cuda
+    assert_same_batch(b, Batch.from_data_list([graphs[i] for i in order]))
