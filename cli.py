@@ -647,10 +647,14 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         typer.echo(json_line(summary))
         return
     best = summary.get("best_val_md_mm")
+    if model.kind == "pca":
+        typer.echo(f"{config}: fitted; "
+                   + (f"validation MD {best:.3f} mm" if best is not None else "no validation cases")
+                   + f"; {summary.get('n_parameters') or 0:,} parameters → {shown_dir / 'checkpoint.pt'}")
+        return
     typer.echo(f"{config}: {summary['epoch']} epochs ({summary['mode']}); "
                + (f"best validation MD {best:.3f} mm at epoch {summary['best_epoch']}" if best is not None
-                  else "no validation cases" + (f", kept epoch {summary['best_epoch']} (lowest training loss)"
-                                                if model.kind != "pca" else ""))
+                  else f"no validation cases, kept epoch {summary['best_epoch']} (lowest training loss)")
                + (", stopped early" if summary.get("stopped_early") else "")
                + f"; {summary.get('n_parameters') or 0:,} parameters → {shown_dir / 'checkpoint.pt'}")
 
@@ -991,9 +995,9 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     """Generate FE pairs (inverse + forward) over shapes × P × C × θendo × θepi into a Zarr store, on Ray.
     Rerunning on the same store resumes it."""
     from orchestrator.grid import AXIS_FLAGS, parse_axis, resolve_spec
-    from orchestrator.sweep import check_request
+    from orchestrator.sweep import check_request, remaining_cases
     from solver.mesh import MeshError
-    from storage.store import inspect_store
+    from storage.store import inspect_store, reading_store
 
     try:
         if num_cpus is not None and num_cpus < 1:
@@ -1016,9 +1020,11 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
                 read_mesh(path, explicit["mesh_units"] or "mm")
         for axis, text in zip(AXIS_FLAGS, (pressures, stiffness, endo, epi)):
             explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
-        stored = inspect_store(store)
-        spec = resolve_spec(explicit, local=local, stored_attrs=stored)
-        stored = check_request(spec, store, for_writing=not dry_run)
+        with reading_store(store, keep=(MeshError,)):
+            stored = inspect_store(store)
+            spec = resolve_spec(explicit, local=local, stored_attrs=stored)
+            stored = check_request(spec, store, for_writing=not dry_run)
+            left = remaining_cases(spec, store, retry_failed) if stored is not None and not dry_run else None
     except (*_store_errors(), MeshError) as exc:
         fail(str(exc))
     from solver.parameters import HIGHEST_ED_PRESSURE_MMHG
@@ -1037,10 +1043,9 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             return
         _print_plan(plan)
         return
-    from orchestrator.sweep import init_ray, remaining_cases, run_sweep
+    from orchestrator.sweep import init_ray, run_sweep
 
-    if stored is not None:
-        left = remaining_cases(spec, store, retry_failed)
+    if left is not None:
         if left["to_run"] == 0:
             if as_json:  # the keys of a run's report, nothing submitted
                 from orchestrator.sweep import SweepReport
@@ -1129,12 +1134,13 @@ def _fmt_s(x) -> str:
 def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL."),
            as_json: bool = typer.Option(False, "--json", help='One JSON object: {"done": N, "failed": N, "pending": N, …}.')):
     """Progress of a store: counts by status, failure reasons, throughput, per-phase times, ETA."""
-    from storage.store import StoreError, inspect_store, is_url, summarize
+    from storage.store import StoreError, inspect_store, is_url, reading_store, summarize
 
     try:
-        if inspect_store(store) is None:
-            raise StoreError(f"no heartctl store at {store}")
-        s = summarize(store)
+        with reading_store(store):
+            if inspect_store(store) is None:
+                raise StoreError(f"no heartctl store at {store}")
+            s = summarize(store)
     except _store_errors() as exc:
         fail(str(exc))
     if as_json:

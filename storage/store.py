@@ -32,6 +32,7 @@ import json
 import os
 import re
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -60,6 +61,21 @@ COORD_DTYPE = np.float32
 
 class StoreError(ValueError):
     """A store that cannot be used as asked; the message is one line."""
+
+
+@contextmanager
+def reading_store(location, keep: tuple = ()):
+    """Errors from zarr, numcodecs or the filesystem while a store is read (a damaged chunk raises
+    RuntimeError from its decompressor) as one-line StoreErrors, which the CLI reports with exit 2
+    and Ray Train workers refuse at once instead of retrying. StoreErrors, the exception types in
+    `keep` and programming errors (TypeError, AttributeError, NameError) pass unchanged."""
+    try:
+        yield
+    except (StoreError, TypeError, AttributeError, NameError, *keep):
+        raise
+    except Exception as exc:
+        raise StoreError(f"cannot read store {location}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+                         ) from None
 
 
 # --------------------------------------------------------------------------- opening

@@ -285,6 +285,23 @@ def test_status_and_dry_run_cli(tmp_path, small_store):
     assert not new.exists()  # a dry run writes nothing
 
 
+def test_a_damaged_status_chunk_is_one_line_and_the_store_untouched(tmp_path):
+    """status and a resuming generate read every shape's status array: a chunk that does not decompress
+    (numcodecs raises RuntimeError) is exit 2 and one line, not a traceback, and nothing is written."""
+    from trainer_fixtures import make_tiny_store
+
+    store = Path(make_tiny_store(tmp_path / "t.zarr", shapes=2))
+    chunks = sorted(p for p in store.glob("shapes/1/status/c/**/*") if p.is_file())
+    assert chunks
+    chunks[0].write_bytes(b"\x00garbage" * 5)
+    before = _snapshot(store)
+    for args in (["status", "--store", str(store)], ["generate", "--store", str(store)]):
+        code, err = _run_cli(args)
+        lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("heartctl: error: cannot read store"), err
+    assert _snapshot(store) == before
+
+
 def test_an_unwritable_store_folder_is_refused_before_ray(tmp_path, monkeypatch):
     """Found by check_request (before Ray starts), not as a PermissionError traceback mid-run."""
     import orchestrator.sweep as sweep

@@ -3,6 +3,7 @@ bad input (bad checkpoint, mismatched store, bad split or config) → one line, 
 from __future__ import annotations
 
 import json
+import shutil
 
 import meshio
 import numpy as np
@@ -434,6 +435,7 @@ def test_a_diverged_or_damaged_checkpoint_is_refused_in_one_line(trained, tmp_pa
     pca = tmp_path / "pca"
     r = run("train", "--store", trained["store"], "--run-dir", pca, "--no-ray", "--config", "pca", "--device", "cpu")
     assert r.exit_code == 0, r.output
+    assert "pca: fitted; validation MD " in r.output  # the ridge was chosen on them: not "no validation cases"
     pca_bad = _copied_run({"run": pca}, tmp_path, "pca_bad", lambda s: [s[k].pop("ridge_w") for k in ("model", "best_model")])
     assert_bad_input(run("evaluate", "--run", pca_bad, "--store", trained["store"], "--no-plots"), "damaged", "ridge_w")
     for extra in (["--tol-mm", 1e-3], ["--fidelity", "fast"]):
@@ -512,6 +514,33 @@ def test_a_diverging_run_stops_and_keeps_its_last_good_checkpoint(trained, tmp_p
     kept = load_run(run_dir)
     assert kept["epoch"] == 1 and all(torch.equal(good["model"][k], v) for k, v in kept["model"].items())
     assert len(kept["history"]) == 1
+
+
+def test_a_fresh_run_that_diverges_leaves_nothing(trained, tmp_path):
+    run_dir = tmp_path / "fresh"
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", run_dir, "--no-ray", "--batch-size", 8,
+                         "--device", "cpu", "--epochs", 2, "--lr", "1e12"), "diverged in epoch 1", "nothing of this run")
+    assert not run_dir.exists()
+    run_dir.mkdir()  # the user's own folder stays, empty
+    assert run("train", "--store", trained["store"], "--run-dir", run_dir, "--no-ray", "--batch-size", 8,
+               "--device", "cpu", "--epochs", 2, "--lr", "1e12").exit_code == 2
+    assert run_dir.is_dir() and not any(run_dir.iterdir())
+
+
+def test_a_damaged_chunk_in_the_store_is_one_line(trained, tmp_path):
+    """A chunk that does not decompress (zarr/numcodecs raise RuntimeError): exit 2 and one line from
+    train and evaluate, not a traceback (before: exit 1; under Ray, retried --max-failures times)."""
+    store = tmp_path / "damaged.zarr"
+    shutil.copytree(trained["store"], store)
+    chunks = sorted(p for p in store.glob("shapes/*/unloaded/c/**/*") if p.is_file())
+    assert chunks
+    for p in chunks:
+        p.write_bytes(b"not a blosc chunk" * 4)
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", store, "--no-plots"), "cannot read store",
+                     "damaged.zarr")
+    assert_bad_input(run("train", "--store", store, "--run-dir", tmp_path / "r", "--no-ray", "--epochs", 1,
+                         "--device", "cpu"), "cannot read store")
+    assert not (tmp_path / "r").exists()
 
 
 def test_a_run_without_validation_cases_says_so_in_strict_json(tmp_path):

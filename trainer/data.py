@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Data
 
-from storage.store import PARAM_NAMES, PairReader, StoreError
+from storage.store import PARAM_NAMES, PairReader, reading_store
 
 from .config import TrainerError
 from .splits import make_split, subsample_shapes, supervised_subset
@@ -292,12 +292,8 @@ class StoreCases:
 
 
 def open_reader(location) -> PairReader:
-    try:
+    with reading_store(location, keep=(TrainerError,)):
         return PairReader(str(location))
-    except StoreError:
-        raise
-    except Exception as exc:  # zarr/filesystem errors on a damaged store
-        raise StoreError(f"cannot read store {location}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
 
 ED_TOLERANCE_MM = 1e-3  # a case whose ED differs more from its shape's mesh keeps its own ED
@@ -307,7 +303,11 @@ def read_store(location, keys: list | None = None) -> StoreCases:
     """Read done cases (all, or the given keys) of a store into memory. Generated pairs reproduce
     their shape's ED mesh (round trip ≤ 1e-4 mm); an imported case whose ED differs by more than
     ED_TOLERANCE_MM keeps its own ED, the network's input and the origin of its label."""
-    reader = open_reader(location)
+    with reading_store(location, keep=(TrainerError,)):
+        return _read_store(open_reader(location), keys)
+
+
+def _read_store(reader: PairReader, keys: list | None) -> StoreCases:
     wanted = None if keys is None else {(int(a), int(b)) for a, b in keys}
     shape_ids = reader.shape_ids() if wanted is None else sorted({k[0] for k in wanted} & set(reader.shape_ids()))
     features, params, unloaded, loaded = {}, {}, {}, {}
@@ -338,12 +338,14 @@ def check_split(cfg) -> None:
     cases' keys and parameters alone (no meshes, no graphs): TrainerError for a split the store
     cannot give (a LOVO value it lacks, one shape, no recorded source split). A fresh Ray run checks
     this before its workers start, since they would retry a refusal --max-failures times."""
-    reader = open_reader(cfg.store)
-    keys = reader.done_cases()
-    shape_ids = sorted({k[0] for k in keys})
-    table = {s: reader.case_params(s) for s in shape_ids}
-    params = {k: np.asarray(table[k[0]][k[1]], dtype=np.float64) for k in keys}
-    parts = make_split(keys, params, cfg.split, cfg.data_seed, _split_attrs(reader, shape_ids))
+    with reading_store(cfg.store, keep=(TrainerError,)):
+        reader = open_reader(cfg.store)
+        keys = reader.done_cases()
+        shape_ids = sorted({k[0] for k in keys})
+        table = {s: reader.case_params(s) for s in shape_ids}
+        params = {k: np.asarray(table[k[0]][k[1]], dtype=np.float64) for k in keys}
+        attrs = _split_attrs(reader, shape_ids)
+    parts = make_split(keys, params, cfg.split, cfg.data_seed, attrs)
     supervised_subset(subsample_shapes(parts["train"], cfg.train_fraction, cfg.data_seed), cfg.sr, cfg.labels_seed)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 import random
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -172,6 +173,20 @@ def _tensorboard(run_dir: Path):
     return None
 
 
+def discard_fresh_run(run_dir: Path, made_run_dir: bool) -> None:
+    """Remove what a fresh run wrote before its first checkpoint (config.json, metrics.csv, the
+    TensorBoard events), and the run directory when this run made it and that leaves it empty."""
+    for name in ("config.json", "metrics.csv"):
+        (run_dir / name).unlink(missing_ok=True)
+    shutil.rmtree(run_dir / "tb", ignore_errors=True)
+    if not made_run_dir:
+        return
+    try:
+        run_dir.rmdir()
+    except OSError:  # not empty: the user's files, or Ray's
+        pass
+
+
 def pick_resume_state(candidates: list) -> dict | None:
     """The most advanced of the available checkpoints (Ray's and the run directory's)."""
     states = [s for s in candidates if s is not None]
@@ -234,6 +249,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     if state is not None:
         check_resumable(state, cfg, bundle, run_dir)
     writes = dist.is_main and dist.write_local
+    made_run_dir = writes and not run_dir.exists()
     if writes:
         run_dir.mkdir(parents=True, exist_ok=True)
         write_json(run_dir / "config.json", cfg.as_dict())
@@ -304,6 +320,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             dist.log(f"batches of {sampler.n_labelled} labelled + {sampler.n_unlabelled} unlabelled cases "
                      f"({len(sampler)} per epoch and process)")
     epoch = start_epoch
+    saved_epoch = start_epoch if state is not None else None  # the last epoch a checkpoint holds
     for epoch in range(start_epoch, cfg.epochs):
         if stopped:
             break
@@ -336,10 +353,16 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         val_loss, val_md, n_val = _validate(evaluated, val_loader, cfg, dist, bundle.norm.disp_scale_mm)
         if not math.isfinite(train_loss) or (n_val and not math.isfinite(val_loss)):
             # all ranks see the same reduced sums, so all stop here; nothing of this epoch is kept
+            if saved_epoch is None and writes:  # a fresh run with nothing worth keeping leaves nothing behind
+                if writer is not None:
+                    writer.close()
+                discard_fresh_run(run_dir, made_run_dir)
+            kept = (f"{run_dir} keeps its checkpoint from epoch {saved_epoch}" if saved_epoch is not None
+                    else "nothing of this run was kept")
             raise TrainingDiverged(f"training diverged in epoch {epoch + 1} (training loss {train_loss:.4g}, "
-                                   f"validation loss {val_loss:.4g}); {run_dir} keeps its checkpoint from before; "
-                                   f"lower the learning rate (--lr, now {opt.param_groups[0]['lr']:g}) or start a "
-                                   f"new run directory")
+                                   f"validation loss {val_loss:.4g}); {kept}; lower the learning rate (--lr, now "
+                                   f"{opt.param_groups[0]['lr']:g})"
+                                   + (" or start a new run directory" if saved_epoch is not None else ""))
         monitor = val_loss if n_val else train_loss  # no validation cases: the training loss decides
         if cfg.lr_schedule == "plateau":
             sched.step(monitor)
@@ -380,6 +403,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                     ckpt["weight_average"] = average.state_dict()
                 if writes:
                     save_checkpoint(local, ckpt)
+                saved_epoch = epoch + 1
         if dist.report is not None:
             dist.report({k: (v if v is None or math.isfinite(v) else None) for k, v in row.items()},
                         ckpt if dist.is_main else None)
@@ -411,8 +435,9 @@ def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0
         dist.log(f"pca: fitted on {len(keys)} labelled training cases "
                  f"({pca.s['disp_comps'].shape[0]} displacement components, ridge "
                  f"{float(np.ravel(pca.s['ridge'])[0]):g}{' chosen on the validation cases' if validation else ''})")
+    val_md = pca.mean_distance_mm(c.features, c.params, validation, bundle.norm) if validation else None
     return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": 1, "epoch": 1, "resumed_from": 0,
-            "best_epoch": 1, "best_val_loss": None, "stopped_early": False,
+            "best_epoch": 1, "best_val_loss": None, "best_val_md_mm": val_md, "stopped_early": False,
             "n_parameters": int(sum(v.numel() for v in pca.state_dict().values())),
             "train_cases": len(bundle.train), "labelled_cases": len(bundle.labelled),
             "wall_s": time.perf_counter() - t0}

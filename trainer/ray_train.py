@@ -188,6 +188,7 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     if not is_url(cfg.store):  # workers run in their own working directory
         cfg = replace(cfg, store=str(Path(cfg.store).resolve()))
     run_dir = Path(run_dir).resolve()
+    made_run_dir = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
     local = run_checkpoint_path(run_dir)
     driver_state = ray.put(local.read_bytes()) if local.is_file() else None
@@ -224,7 +225,13 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
                 final = load_checkpoint(Path(d) / CHECKPOINT_NAME)
                 break
     final = pick_resume_state([final, load_checkpoint(local) if local.is_file() else None])
-    if final is None:
+    if final is None:  # refused or diverged before any checkpoint: Ray's storage holds nothing to resume from
+        shutil.rmtree(run_dir / RAY_RUN_NAME, ignore_errors=True)
+        if made_run_dir:
+            try:
+                run_dir.rmdir()
+            except OSError:  # not empty
+                pass
         raise TrainerError(refused or "Ray Train finished without a checkpoint")
     save_checkpoint(local, {k: v for k, v in final.items() if k not in ("format", "version")})
     write_metrics_csv(run_dir / "metrics.csv", final.get("history", []))
