@@ -17,16 +17,23 @@ from trainer_fixtures import lv_mesh, synthetic_unloaded
 
 
 def _graphs(response: bool) -> list:
-    """20 cases on two meshes (~120 and ~160 nodes), alternating; every third unlabelled."""
+    """20 cases on two meshes (~120 and ~160 nodes), alternating; every third unlabelled. With
+    `response`, each mesh's graphs share one [n, 3] response tensor, as MeshFeatures.response gives
+    (random here: the linear FE solve needs scikit-fem, which a GPU host running these tests lacks)."""
     feats = [mesh_features(lv_mesh(0)), mesh_features(lv_mesh(1, nodes=160))]
     assert feats[0].ed_mm.shape[0] != feats[1].ed_mm.shape[0]
     norm = Normalisation(tuple(feats[0].ed_mm.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
+    gen = torch.Generator().manual_seed(5)
+    responses = [torch.randn(f.ed_mm.shape[0], 3, generator=gen) for f in feats]
     out = []
     for i in range(20):
         f = feats[i % 2]
         p, c = 4.0 + i % 5 * 2.5, 50.0 + 25.0 * i
-        out.append(case_graph(f, [p, c, 60.0 + i % 3, -65.0], norm, synthetic_unloaded(f.ed_mm, p, c),
-                              labelled=i % 3 != 0, key=(i % 2, i), response=response))
+        g = case_graph(f, [p, c, 60.0 + i % 3, -65.0], norm, synthetic_unloaded(f.ed_mm, p, c),
+                       labelled=i % 3 != 0, key=(i % 2, i))
+        if response:
+            g.response = responses[i % 2]
+        out.append(g)
     return out
 
 
@@ -76,6 +83,17 @@ def test_bad_tables_are_refused():
         GraphTable([odd])
     with pytest.raises(ValueError, match="at least one graph"):
         GraphTable(graphs).batch([])
+
+
+def test_saved_meshes_stand_in_for_gmsh():
+    """The meshes a GPU host without gmsh uses (trainer_fixtures.lv_mesh): readable, tagged, and the
+    same sizes as the gmsh meshes they were written from."""
+    from storage.meshfiles import read_mesh
+    from trainer_fixtures import saved_mesh_path
+
+    for (shape, nodes), n in {(0, 120): 122, (1, 120): 119, (1, 160): 168}.items():
+        m = read_mesh(saved_mesh_path(shape, 0, nodes))
+        assert m.n_nodes == n and len(m.endo) and len(m.epi) and len(m.base)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
