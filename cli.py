@@ -3,6 +3,7 @@ bad input → one line on stderr and exit code 2; a solve that fails → its rea
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 from enum import Enum
@@ -77,10 +78,14 @@ def _params(pressure, stiffness, endo, epi):
     return CaseParameters(float(pressure), float(stiffness), float(endo), float(epi))
 
 
-def _check_output(out: Path) -> None:
+def _check_output(out: Path, source: Path | None = None) -> None:
+    """storage.meshfiles.check_output_path, and ValueError when `out` is the input mesh `source`
+    (writing the answer would replace the user's mesh)."""
     from storage.meshfiles import check_output_path
 
     check_output_path(out)
+    if source is not None and out.exists() and source.exists() and out.resolve() == source.resolve():
+        raise ValueError(f"-o {out} is the input mesh; write the result to another file")
 
 
 def _write_mesh(out: Path, *args, **kwargs) -> None:
@@ -131,6 +136,8 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
         _check_output(out)
         if nodes < 50:
             raise ValueError(f"--nodes must be ≥ 50, got {nodes}")
+        if seed < 0:
+            raise ValueError(f"--seed must be ≥ 0, got {seed}")
         shape_def = lv_shape(shape, seed)
         lv = mesh_lv(shape_def, nodes)
         phi = transmural_coordinate(lv)
@@ -159,7 +166,7 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
     try:
         params = _params(pressure, stiffness, endo, epi)
         _check_fibres(fibres)
-        _check_output(out)
+        _check_output(out, mesh_path)
         lv = read_mesh(mesh_path, units.value)
     except _input_errors() as exc:
         fail(str(exc))
@@ -237,9 +244,9 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
 
     try:
         params = _params(pressure, stiffness, endo, epi)
-        _check_output(out)
-        if tol_mm is not None and not tol_mm > 0:
-            raise ValueError(f"--tol-mm must be > 0, got {tol_mm}")
+        _check_output(out, mesh_path)
+        if tol_mm is not None and not (math.isfinite(tol_mm) and tol_mm > 0):
+            raise ValueError(f"--tol-mm must be a finite number > 0, got {tol_mm}")
         _check_fibres(fibres)
         if rotations < 1 or (rotations > 1 and method is UnloadMethod.fe):
             raise ValueError(f"--rotations must be ≥ 1 and applies to --method gnn|hybrid, got {rotations}")
@@ -1020,9 +1027,11 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
                 read_mesh(path, explicit["mesh_units"] or "mm")
         for axis, text in zip(AXIS_FLAGS, (pressures, stiffness, endo, epi)):
             explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
-        with reading_store(store, keep=(MeshError,)):
+        with reading_store(store, keep=(MeshError, ValueError, OSError)):  # argument and file errors keep their words
             stored = inspect_store(store)
             spec = resolve_spec(explicit, local=local, stored_attrs=stored)
+            if units is not None and not spec.meshes:
+                raise ValueError("--units gives the length unit of --meshes files; this sweep meshes the shape model")
             stored = check_request(spec, store, for_writing=not dry_run)
             left = remaining_cases(spec, store, retry_failed) if stored is not None and not dry_run else None
     except (*_store_errors(), MeshError) as exc:

@@ -215,6 +215,11 @@ def _check_surfaces(nodes: np.ndarray, endo: np.ndarray, epi: np.ndarray, base: 
     extent = [np.ptp(nodes[np.unique(f)], axis=0).prod() for f in (endo, epi)]
     if extent[0] >= extent[1]:
         raise MeshError("the tagged endocardium is not inside the epicardium (are the tags swapped?)")
+    for name, faces in (("endocardium", endo), ("epicardium", epi)):
+        pieces = np.unique(_facet_components(faces)).size
+        if pieces > 1:
+            raise MeshError(f"the tagged {name} is {pieces} separate pieces; it must be one surface (are part of "
+                            f"its triangles tagged as another surface?)")
 
 
 def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=None, info=None) -> TetMesh:
@@ -238,6 +243,14 @@ def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=Non
                 raise MeshError("a tagged surface triangle is not on the mesh boundary") from exc
 
         endo, epi, base = orient(endo), orient(epi), orient(base)
+        tagged = np.sort(np.concatenate([endo, epi, base]), axis=1)
+        distinct, counts = np.unique(tagged, axis=0, return_counts=True)
+        if (counts > 1).any():
+            raise MeshError(f"{int((counts > 1).sum())} boundary triangles carry more than one surface tag; each must be "
+                            f"endocardium, epicardium or base, once")
+        if len(distinct) < len(outward):
+            raise MeshError(f"{len(outward) - len(distinct)} of the {len(outward)} boundary triangles carry no surface "
+                            f"tag; endocardium, epicardium and base must cover the whole boundary")
     for name, faces in (("endocardium", endo), ("epicardium", epi), ("base", base)):
         if len(faces) == 0:
             raise MeshError(f"mesh has no {name} surface")

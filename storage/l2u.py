@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from solver.parameters import CaseParameters, ParameterError
+
 from .store import DONE, FAILED, PairStore, StoreError, inspect_store, is_url, stats_row
 
 NAME = re.compile(r"^(ED|unloaded)(\d+)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)\.vtu$")
@@ -72,6 +74,11 @@ def find_pairs(root: str | os.PathLike, report: ImportReport) -> list[SourcePair
             continue
         kind, shape, p, c, endo, epi = m.groups()
         key = (int(shape), float(p), float(c), float(endo), -float(epi))
+        try:
+            CaseParameters(*key[1:])
+        except ParameterError as exc:
+            report.skip(f"parameters out of range ({exc})", path.name)
+            continue
         if key in files[kind]:
             report.skip("duplicate file", path.name)
             continue
@@ -88,11 +95,11 @@ def find_pairs(root: str | os.PathLike, report: ImportReport) -> list[SourcePair
 
 
 def _read(path: Path):
-    import meshio
+    """(points mm, tets) of one source file; MeshError when it is unreadable or not all linear tets."""
+    from .meshfiles import linear_tets, read_meshio
 
-    m = meshio.read(path)
-    tets = np.vstack([c.data for c in m.cells if c.type == "tetra"]).astype(np.int64)
-    return np.asarray(m.points, dtype=float) * CM_TO_MM, tets
+    m = read_meshio(path)
+    return np.asarray(m.points, dtype=float) * CM_TO_MM, linear_tets(m, path)
 
 
 def import_l2u(root, location, progress=None) -> ImportReport:
@@ -117,8 +124,9 @@ def import_l2u(root, location, progress=None) -> ImportReport:
             try:
                 ed, tets = _read(pair.ed_path)
                 un, tets_u = _read(pair.unloaded_path)
-            except Exception as exc:  # corrupt file
-                report.skip(f"unreadable ({type(exc).__name__})", pair.ed_path.name)
+            except MeshError as exc:  # a corrupt file, or cells other than linear tets
+                report.skip("unreadable" if "cannot read" in str(exc) else "not linear tetrahedra only",
+                            pair.ed_path.name)
                 continue
             if ed.shape != un.shape or not np.array_equal(tets, tets_u):
                 report.skip("ED and unloaded differ in node count or connectivity", pair.ed_path.name)

@@ -34,18 +34,8 @@ def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
     import contextlib
     import io
 
-    chatter = io.StringIO()
-    try:
-        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
-            m = meshio.read(path)
-    except (Exception, SystemExit) as exc:  # meshio raises many types (even SystemExit) for corrupt files
-        reason = " ".join(chatter.getvalue().split()) if isinstance(exc, SystemExit) else str(exc).split("\n")[0]
-        raise MeshError(f"cannot read mesh file {path}: {reason or type(exc).__name__}") from None
-    tets = [c.data for c in m.cells if c.type == "tetra"]
-    if not tets:
-        kinds = ", ".join(sorted({c.type for c in m.cells})) or "none"
-        raise MeshError(f"{path} has no linear tetrahedra (cell types: {kinds})")
-    tets = np.vstack(tets).astype(np.int64)
+    m = read_meshio(path)
+    tets = linear_tets(m, path)
     points = np.asarray(m.points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
         raise MeshError(f"{path} must have 3-D points")
@@ -56,11 +46,47 @@ def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
         points, tets = points[used], remap[tets]
     else:
         remap = None
-    surfaces = _tagged_surfaces(m, remap)
+    surfaces = _tagged_surfaces(m, remap, path)
     return make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
 
 
-def _tagged_surfaces(m, remap):
+def read_meshio(path: Path):
+    """meshio.read, quiet, with any failure (meshio raises many types, even SystemExit, for corrupt
+    files) as a one-line MeshError."""
+    import contextlib
+    import io
+
+    import meshio
+
+    chatter = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+            return meshio.read(path)
+    except (Exception, SystemExit) as exc:
+        reason = " ".join(chatter.getvalue().split()) if isinstance(exc, SystemExit) else str(exc).split("\n")[0]
+        raise MeshError(f"cannot read mesh file {path}: {reason or type(exc).__name__}") from None
+
+
+VOLUME_CELLS = ("tetra10", "hexahedron", "hexahedron20", "hexahedron27", "wedge", "wedge12", "wedge15", "pyramid",
+                "pyramid13", "pyramid14", "polyhedron")
+
+
+def linear_tets(m, path) -> np.ndarray:
+    """The linear tetrahedra of a meshio mesh [m, 4]; MeshError when there are none, or when other
+    volume cells (wedges, hexahedra, quadratic tets …) fill part of the wall and would be dropped."""
+    kinds = {c.type for c in m.cells}
+    other = sorted(k for k in kinds if k.startswith(VOLUME_CELLS))
+    tets = [c.data for c in m.cells if c.type == "tetra"]
+    if not tets:
+        raise MeshError(f"{path} has no linear tetrahedra (cell types: {', '.join(sorted(kinds)) or 'none'})")
+    if other:
+        n = sum(len(c.data) for c in m.cells if c.type in other)
+        raise MeshError(f"{path} has {n} volume cells that are not linear tetrahedra ({', '.join(other)}); "
+                        f"heartctl needs a mesh of linear tetrahedra only")
+    return np.vstack(tets).astype(np.int64)
+
+
+def _tagged_surfaces(m, remap, path):
     if TAG_NAME not in m.cell_data:
         return None, None, None
     tris, codes = [], []
@@ -71,6 +97,10 @@ def _tagged_surfaces(m, remap):
     if not tris:
         return None, None, None
     tris, codes = np.vstack(tris), np.concatenate(codes)
+    unknown = ~np.isin(codes, list(SURFACE_CODES.values()))
+    if unknown.any():
+        raise MeshError(f"{path}: {int(unknown.sum())} triangles carry a `{TAG_NAME}` value other than "
+                        f"{', '.join(f'{v} ({k})' for k, v in SURFACE_CODES.items())}, e.g. {codes[unknown][0]:g}")
     if remap is not None:
         tris = remap[tris]
     return tuple(tris[codes == SURFACE_CODES[k]] for k in ("endo", "epi", "base"))

@@ -74,8 +74,9 @@ def reading_store(location, keep: tuple = ()):
     except (StoreError, TypeError, AttributeError, NameError, *keep):
         raise
     except Exception as exc:
-        raise StoreError(f"cannot read store {location}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
-                         ) from None
+        reason = f"missing {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args else \
+            (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        raise StoreError(f"cannot read store {location}: {reason}") from None
 
 
 # --------------------------------------------------------------------------- opening

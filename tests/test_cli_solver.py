@@ -96,9 +96,9 @@ def _write_bad(tmp_path, kind, lv_file):
         write_mesh(path, lv, nodes_mm=lv.nodes[:, [2, 1, 0]] * [1.0, 1.0, -1.0])
     elif kind == "swapped":  # endocardium and epicardium tags exchanged
         write_mesh(path, replace(lv, endo=lv.epi, epi=lv.endo))
-    elif kind == "apex_base":  # the base tag on apical epicardium
-        apical = lv.epi[np.argsort(lv.nodes[lv.epi].mean(axis=1)[:, 2])[:20]]
-        write_mesh(path, replace(lv, base=apical))
+    elif kind == "apex_base":  # the base tag on apical epicardium, the epicardium's on the base
+        order = np.argsort(lv.nodes[lv.epi].mean(axis=1)[:, 2])
+        write_mesh(path, replace(lv, base=lv.epi[order[:20]], epi=np.vstack([lv.epi[order[20:]], lv.base])))
     elif kind == "floating":  # one separate tet beside the wall
         extra = lv.nodes[lv.tets[0]] + [0.0, 0.0, -200.0]
         nodes = np.vstack([lv.nodes, extra])
@@ -108,6 +108,27 @@ def _write_bad(tmp_path, kind, lv_file):
         tets = lv.tets.copy()
         tets[5, 3] = tets[5, 0]
         meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    elif kind == "wedges":  # tets plus a few wedge cells, which a tet reader would drop silently
+        wedges = np.array([[0, 1, 2, 3, 4, 5], [6, 7, 8, 9, 10, 11]])
+        meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", lv.tets), ("wedge", wedges)]))
+    elif kind in ("untagged_part", "unknown_tag", "tagged_twice", "endo_tagged_epi"):
+        endo, epi = lv.endo, lv.epi
+        codes = {"endo": 1, "epi": 2, "base": 3}
+        tris = np.vstack([lv.endo, lv.epi, lv.base])
+        tags = np.concatenate([np.full(len(lv.endo), 1), np.full(len(lv.epi), 2), np.full(len(lv.base), 3)])
+        low = np.argsort(lv.nodes[endo].mean(axis=1)[:, 2])[: len(endo) // 2]  # the apical half of the endocardium
+        if kind == "untagged_part":  # the apical endocardium carries no tag
+            tris = np.vstack([np.delete(endo, low, axis=0), epi, lv.base])
+            tags = np.concatenate([np.full(len(endo) - len(low), 1), np.full(len(epi), 2), np.full(len(lv.base), 3)])
+        elif kind == "unknown_tag":
+            tags = tags.astype(float)
+            tags[:3] = 1.5
+        elif kind == "tagged_twice":
+            tris, tags = np.vstack([tris, endo[:4]]), np.concatenate([tags, np.full(4, codes["epi"])])
+        else:  # a consistent split of the boundary, but the apical endocardium labelled epicardium
+            tags[low] = codes["epi"]
+        meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", lv.tets), ("triangle", tris)],
+                                       cell_data={"surface": [np.zeros(len(lv.tets)), tags]}))
     return path
 
 
@@ -123,6 +144,11 @@ BAD_MESHES = {
     "apex_base": "cut facing +z",
     "floating": "separate pieces",
     "repeated": "degenerate",
+    "wedges": "not linear tetrahedra (wedge)",
+    "untagged_part": "carry no surface tag",
+    "unknown_tag": "other than 1 (endo)",
+    "tagged_twice": "more than one surface tag",
+    "endo_tagged_epi": "epicardium is 2 separate pieces",
 }
 
 
@@ -147,6 +173,19 @@ BAD_PARAMS = [
     (["--pressure", "nan", "--stiffness", 150], "finite"),
     (["--pressure", 8, "--stiffness", 150, "--fibres", "bogus"], "--fibres must be laplace or heartfem"),
 ]
+
+
+def test_the_input_mesh_is_never_the_output(tmp_path, lv_file):
+    mine = tmp_path / "mine.vtu"
+    mine.write_bytes(Path(lv_file).read_bytes())
+    before = mine.read_bytes()
+    for command in ("solve", "unload"):
+        r = run(command, mine, "--pressure", 8, "--stiffness", 150, "-o", mine)
+        assert r.exit_code == 2 and "is the input mesh" in r.output, r.output
+    assert mine.read_bytes() == before
+    r = run("unload", lv_file, "--pressure", 8, "--stiffness", 150, "--tol-mm", "inf", "-o", tmp_path / "u.vtu")
+    assert r.exit_code == 2 and "--tol-mm must be a finite number" in r.output
+    assert not (tmp_path / "u.vtu").exists()
 
 
 @pytest.mark.parametrize("args,message", BAD_PARAMS)
@@ -177,6 +216,8 @@ def test_mesh_command_rejects_bad_shape(tmp_path):
     out = tmp_path / "m.vtu"
     r = run("mesh", "--shape", -1, "-o", out)
     assert r.exit_code == 2 and "shape id" in r.output
+    r = run("mesh", "--shape", 0, "--seed", -1, "-o", out)
+    assert r.exit_code == 2 and "--seed must be ≥ 0" in r.output
     assert not out.exists()
 
 

@@ -75,6 +75,24 @@ def test_malformed_and_unmatched_files_are_listed_and_skipped(source, tmp_path):
     assert "malformed name" in r.output and "unmatched" in r.output
 
 
+def test_garbage_files_and_impossible_parameters_are_skipped(source, tmp_path):
+    """A file meshio cannot parse (meshio raises SystemExit for some) and names whose parameters the
+    solver would refuse (P = 0, C = 0, θendo = 120°) are skipped with their reason, never imported."""
+    root = tmp_path / "odd"
+    shutil.copytree(source, root)
+    (root / "test" / "ED" / "ED59_6_300_60_60.vtu").write_bytes(b"\x00garbage")
+    for name in ("59_0_150_60_60", "59_10_0_70_70", "59_10_300_120_60"):
+        for kind in ("ED", "unloaded"):
+            shutil.copy(FIXTURES / f"{kind}59_10_150_60_60.vtu", root / "test" / kind / f"{kind}{name}.vtu")
+    out = tmp_path / "s.zarr"
+    r = runner.invoke(app, ["import-l2u", str(root), "--store", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "imported 3 pairs" in r.output and "unreadable" in r.output and "parameters out of range" in r.output
+    reader = PairReader(str(out))
+    done = reader.done_cases()
+    assert sorted(tuple(reader.case_params(s)[k][:2]) for s, k in done) == [(10.0, 50.0), (10.0, 150.0), (10.0, 300.0)]
+
+
 def test_nothing_importable_exits_2_and_leaves_nothing(tmp_path):
     empty = tmp_path / "empty"
     (empty / "ED").mkdir(parents=True)

@@ -47,3 +47,10 @@ def test_generate_warns_of_a_pressure_beyond_end_diastole(tmp_path):
     assert "warning: --pressures 120 mmHg: end-diastolic pressures are 0–40 mmHg" in r.output
     assert "warning" not in CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--shapes", "1",
                                                      "--pressures", "8,14", "--dry-run"]).output
+
+
+def test_units_without_meshes_is_refused(tmp_path):
+    """--units gives the unit of --meshes files; on a shape-model sweep it would be silently ignored."""
+    r = CliRunner().invoke(app, ["generate", "--local", "--store", str(tmp_path / "s.zarr"), "--units", "cm"])
+    assert r.exit_code == 2 and "--units gives the length unit of --meshes files" in r.output, r.output
+    assert not (tmp_path / "s.zarr").exists()
