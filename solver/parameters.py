@@ -9,6 +9,9 @@ MMHG_TO_PA = 133.322387415
 # End-diastolic pressures stay below this even in heart failure; `generate` warns of higher ones (an
 # 80 or 120 is likely a systolic value typed by mistake) but lets the solver decide.
 HIGHEST_ED_PRESSURE_MMHG = 40.0
+# Guccione C of myocardium is ~10²–10⁴ Pa (the paper's grid 50–300 Pa); beyond this the exponential
+# law overflows double precision before the solver can report a failure.
+HIGHEST_STIFFNESS_PA = 1e6
 
 PAPER_GRID = {
     "pressure_mmhg": (4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
@@ -36,8 +39,8 @@ class CaseParameters:
                 raise ParameterError(f"{name} must be a finite number, got {value!r}")
         if self.pressure_mmhg <= 0:
             raise ParameterError(f"pressure must be > 0 mmHg, got {self.pressure_mmhg}")
-        if self.stiffness_pa <= 0:
-            raise ParameterError(f"stiffness C must be > 0 Pa, got {self.stiffness_pa}")
+        if not 0 < self.stiffness_pa <= HIGHEST_STIFFNESS_PA:
+            raise ParameterError(f"stiffness C must be > 0 and ≤ {HIGHEST_STIFFNESS_PA:g} Pa, got {self.stiffness_pa:g}")
         for name in ("helix_endo_deg", "helix_epi_deg"):
             if abs(getattr(self, name)) > 90:
                 raise ParameterError(f"{name} must be within ±90°, got {getattr(self, name)}")

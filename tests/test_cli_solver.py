@@ -168,6 +168,7 @@ BAD_PARAMS = [
     (["--pressure", 0, "--stiffness", 150], "pressure must be > 0"),
     (["--pressure", -3, "--stiffness", 150], "pressure must be > 0"),
     (["--pressure", 8, "--stiffness", 0], "stiffness C must be > 0"),
+    (["--pressure", 8, "--stiffness", 1e308], "≤ 1e+06 Pa"),
     (["--pressure", 8, "--stiffness", 150, "--endo", 95], "within ±90"),
     (["--pressure", 8, "--stiffness", 150, "--epi", -120], "within ±90"),
     (["--pressure", "nan", "--stiffness", 150], "finite"),
