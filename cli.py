@@ -771,7 +771,10 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                f"{'torch.compile (%.0f s to compile)' % r['compile_s'] if r['compiled'] else 'eager PyTorch'}, "
                f"{r['gat_kernel']} GAT kernel")
     for row in r["inference"]:
-        typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} ms per batch)")
+        table = (f"; {row['table_ms_per_case']:.3f} ms with the batch built from a graph table (attention graph "
+                 f"assembled from the mesh's)") if "table_ms_per_case" in row else ""
+        typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} "
+                   f"ms per batch){table}")
     pr = r["prepared_single"]
     how = "CUDA graph replay" if pr["cuda_graph"] else ("eager; capture failed: " + pr["capture_error"]
                                                        if pr["capture_error"] else "eager")

@@ -71,6 +71,32 @@ def test_table_loader_visits_cases_like_pyg_dataloader():
     assert [b.key[:, 1].tolist() for b in val] == [[0, 1, 2], [3, 4, 5], [6]]
 
 
+@pytest.mark.parametrize("config", ["paper", "C5"])  # GAT encoder; GAT encoder and decoder
+def test_attention_graph_from_the_table_gives_the_same_model_outputs(config):
+    """With `attention`, a batch carries its AttentionGraph assembled from each mesh's; the model
+    uses it and gives what it gives when it sorts the graph from the edges itself, in every pass:
+    unloading, cycle, and the reverse decoder on the labelled members of a mixed batch."""
+    from dataclasses import replace
+
+    from trainer.config import named_config
+    from trainer.model import build_model
+
+    graphs = _graphs(True)
+    cfg = replace(named_config(config), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8, reverse_weight=0.5)
+    assert cfg.uses_attention_graph
+    torch.manual_seed(0)
+    model = build_model(cfg, 0.1).eval()
+    order = [3, 0, 7, 12, 5]  # graphs 0, 3 and 12 unlabelled
+    with_graph = GraphTable(graphs, attention=True).batch(order)
+    plain = GraphTable(graphs).batch(order)
+    assert with_graph.attention_graph.members is not None and "attention_graph" not in plain.keys()
+    with torch.no_grad():
+        a, b = model(with_graph, reverse=True), model(plain, reverse=True)
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+    assert a[2].shape[0] == sum(graphs[i].num_nodes for i in order if i % 3)
+
+
 def test_bad_tables_are_refused():
     graphs = _graphs(False)
     with pytest.raises(ValueError, match="at least one graph"):
@@ -99,8 +125,14 @@ def test_saved_meshes_stand_in_for_gmsh():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_table_on_cuda_equals_host_collation():
     graphs = _graphs(True)
-    table = GraphTable(graphs, "cuda")
+    table = GraphTable(graphs, "cuda", attention=True)
     order = [4, 1, 1, 18, 7]
     b = table.batch(order)
-    assert b.x.is_cuda and b.edge_index.is_cuda and b.ptr.is_cuda
+    assert b.x.is_cuda and b.edge_index.is_cuda and b.ptr.is_cuda and b.attention_graph.src.is_cuda
+    graph = b.attention_graph
+    del b.attention_graph
     assert_same_batch(b, Batch.from_data_list([graphs[i] for i in order]))
+    from trainer.sparse_gat import AttentionGraph
+
+    ref = AttentionGraph.from_edge_index(b.edge_index, b.num_nodes)
+    assert torch.equal(graph.src, ref.src) and torch.equal(graph.heads(4).val_perm, ref.heads(4).val_perm)

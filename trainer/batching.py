@@ -16,19 +16,23 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch, Data
 
+from .sparse_gat import AttentionGraph
+
 NODE_KEYS = ("x", "y", "wall", "region", "response")  # one row per node (trainer.data.case_graph)
 GRAPH_KEYS = ("params", "labelled", "key")  # one row per graph
 
 
 class GraphTable:
     """The graphs of one split (trainer.data.case_graph) as flat tensors on `device`;
-    `table.batch(indices)` equals `Batch.from_data_list([graphs[i] for i in indices])`.
+    `table.batch(indices)` equals `Batch.from_data_list([graphs[i] for i in indices])`. With
+    `attention`, the batch also carries `attention_graph`: the sparse GAT kernel's AttentionGraph,
+    assembled from each mesh's (built once) instead of sorted from the batch's edges every step.
 
     Graphs whose edge_index is the same tensor (the cases of one shape) share one stored copy of
     the edges. Every graph must carry the same attributes, all of them in NODE_KEYS, GRAPH_KEYS or
     edge_index."""
 
-    def __init__(self, graphs: Sequence[Data], device: torch.device | str = "cpu"):
+    def __init__(self, graphs: Sequence[Data], device: torch.device | str = "cpu", attention: bool = False):
         if not len(graphs):
             raise ValueError("a graph table needs at least one graph")
         self.device = torch.device(device)
@@ -55,6 +59,8 @@ class GraphTable:
         self.topology = topology
         self.n_edges = np.array([int(e.shape[1]) for e in edges], dtype=np.int64)
         self._edge_list = [e.to(self.device) for e in edges]
+        self.attention = attention
+        self._attention: dict = {}  # topology → its AttentionGraph (self loops, CSR order, head patterns)
         self._nodes = {k: torch.cat([g[k] for g in graphs], dim=0).to(self.device) for k in self.node_keys}
         self._graphs = {k: torch.cat([g[k] for g in graphs], dim=0).to(self.device) for k in self.graph_keys}
         for k, v in self._graphs.items():
@@ -91,7 +97,17 @@ class GraphTable:
         out.batch = torch.repeat_interleave(torch.arange(b, device=dev), n_t, output_size=int(ptr[-1]))
         out.ptr = ptr_t
         out._num_graphs = b
+        if self.attention:
+            out.attention_graph = AttentionGraph.direct_sum([self._attention_graph(t) for t in self.topology[idx]])
         return out
+
+    def _attention_graph(self, topology: int) -> AttentionGraph:
+        """One mesh's AttentionGraph, built on first use and kept (its head patterns too)."""
+        if topology not in self._attention:
+            edges = self._edge_list[topology]
+            n = int(self.n_nodes[np.flatnonzero(self.topology == topology)[0]])
+            self._attention[topology] = AttentionGraph.from_edge_index(edges, n)
+        return self._attention[topology]
 
     def batches(self, index_batches: Iterable[Sequence[int]]) -> Iterator[Batch]:
         for indices in index_batches:

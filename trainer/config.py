@@ -113,6 +113,12 @@ class ModelConfig:
         return self.lambda_cycle * min(1.0, (epoch + 1) / self.cycle_rampup_epochs)
 
     @property
+    def uses_attention_graph(self) -> bool:
+        """Whether GAT layers run on the sparse kernel, which takes a batch's edges as an
+        AttentionGraph (built once per batch, or assembled from each mesh's by a GraphTable)."""
+        return self.kind == "gnn" and self.gat_kernel == "sparse" and "gat" in (self.conv, self.decoder)
+
+    @property
     def uses_response(self) -> bool:
         """Whether the graphs must carry the linear response (node_features wall-response)."""
         return self.kind == "gnn" and self.node_features == "wall-response"

@@ -101,7 +101,8 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
 
     flags = [bool(g.labelled.item()) for g in bundle.train]
     n_lab = labelled_per_batch(cfg.batch_size, cfg.sr, cfg.labelled_share)
-    table = GraphTable(bundle.train, table_device(bundle.train, dist.device))
+    attention = cfg.model.uses_attention_graph
+    table = GraphTable(bundle.train, table_device(bundle.train, dist.device), attention)
     if n_lab and any(flags) and not all(flags):
         train_sampler = MixedBatchSampler([i for i, f in enumerate(flags) if f], [i for i, f in enumerate(flags) if not f],
                                           cfg.batch_size, n_lab, cfg.seed, dist.rank, dist.world)
@@ -116,8 +117,9 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
             train_sampler.set_epoch = lambda epoch: gen.manual_seed(cfg.seed * 100003 + epoch)  # type: ignore[attr-defined]
         train = TableLoader(table, BatchSampler(train_sampler, cfg.batch_size, drop_last=False))
     shard = validation_shard(bundle.val, dist.rank, dist.world)
-    val = TableLoader(GraphTable(shard, table_device(shard, dist.device)), chunks(len(shard), cfg.batch_size)) \
-        if shard else None
+    val = None
+    if shard:
+        val = TableLoader(GraphTable(shard, table_device(shard, dist.device), attention), chunks(len(shard), cfg.batch_size))
     return train, train_sampler, val
 
 

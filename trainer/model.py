@@ -270,7 +270,8 @@ class HeartUnloadNet(nn.Module):
         reverse=True a third item, d_rev [N_lab,3] or None: the reverse decoder applied to the true
         unloaded meshes x̂_ED + ρ y of the labelled graphs only (their nodes in batch order; [0,3]
         when none is labelled). Computed only when cfg.reverse_weight > 0.
-        graph: data.edge_index already as an AttentionGraph (repeated inference on one mesh).
+        graph: data.edge_index already as an AttentionGraph (repeated inference on one mesh); when
+        None, data.attention_graph if the batch carries one (trainer.batching.GraphTable), else built.
         teacher: with cycle_grad="teacher", the weights (name → tensor, no gradient) the
         reconstruction pass runs on in training; when None, this model's own detached weights.
         _reconstruct_from: internal — only the reconstruction pass Dec_ed(encode(·)), which the
@@ -281,8 +282,10 @@ class HeartUnloadNet(nn.Module):
             batch = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
         B = int(data.num_graphs) if hasattr(data, "num_graphs") and data.num_graphs else 1
         params, region, wall = data.params, data.region, self._node_extras(data)
-        if graph is None and self._uses_attention_graph:
-            graph = AttentionGraph.from_edge_index(ei, x.shape[0])  # once for every attention layer and pass
+        if graph is None and self._uses_attention_graph:  # once for every attention layer and pass
+            graph = getattr(data, "attention_graph", None)  # a GraphTable batch brings it assembled
+            if graph is None:
+                graph = AttentionGraph.from_edge_index(ei, x.shape[0])
         if _reconstruct_from is not None:
             return self._run(self.dec_ed, _reconstruct_from, ei, graph, batch, params, region, B, wall)
         d_unl = self._run(self.dec_unloaded, x, ei, graph, batch, params, region, B, wall)
@@ -311,7 +314,7 @@ class HeartUnloadNet(nn.Module):
 
     @property
     def _uses_attention_graph(self) -> bool:
-        return self.cfg.gat_kernel == "sparse" and "gat" in (self.cfg.conv, self.cfg.decoder)
+        return self.cfg.uses_attention_graph
 
     def _run(self, decoder, x_in, ei, graph, batch, params, region, B: int, wall=None):
         enc_edges = graph if graph is not None and self.cfg.conv == "gat" else ei
@@ -339,7 +342,12 @@ class HeartUnloadNet(nn.Module):
             sub_batch = (torch.cumsum(lab.to(torch.long), 0) - 1)[batch[node]]
             params, region, x_true = data.params[lab], data.region[node], x_true[node]
             wall = None if wall is None else wall[node]
-            graph = AttentionGraph.from_edge_index(sub_ei, x_true.shape[0]) if self._uses_attention_graph else None
+            if graph is not None and graph.members is not None:  # a direct sum: keep the labelled members
+                graph = AttentionGraph.direct_sum([graph.members[i] for i in lab.nonzero().view(-1).tolist()])
+            elif self._uses_attention_graph:
+                graph = AttentionGraph.from_edge_index(sub_ei, x_true.shape[0])
+            else:
+                graph = None
         return self._run(self.dec_ed, x_true, sub_ei, graph, sub_batch, params, region, n_lab, wall)
 
 

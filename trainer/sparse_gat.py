@@ -10,6 +10,7 @@ have GATConv's names and shapes, so state dicts load either way (tests check out
 gradients against torch_geometric.nn.GATConv)."""
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -58,6 +59,7 @@ class AttentionGraph:
     dst: Tensor  # i, sorted
     crow: Tensor  # [N + 1]
     _heads: dict = field(default_factory=dict, repr=False, compare=False)
+    _parts: tuple | None = field(default=None, repr=False, compare=False)  # (graphs, node offsets, edge offsets)
 
     @classmethod
     def from_edge_index(cls, edge_index: Tensor, n_nodes: int) -> "AttentionGraph":
@@ -68,14 +70,50 @@ class AttentionGraph:
         src, dst = src[order], dst[order]
         return cls(n_nodes, src, dst, _crow(dst, n_nodes))
 
+    @classmethod
+    def direct_sum(cls, parts: list) -> "AttentionGraph":
+        """The graph of a batch from the graphs of its members, in order (block diagonal: each
+        member's CSR rows follow the previous member's, its node numbers shifted by their node
+        counts). Equals from_edge_index on the batched edge_index without sorting anything, and
+        its head-folded patterns are assembled from the members' (cached per member)."""
+        n = [p.n_nodes for p in parts]
+        e = [p.n_edges for p in parts]
+        node_off = [0, *itertools.accumulate(n)][:-1]
+        edge_off = [0, *itertools.accumulate(e)][:-1]
+        dev = parts[0].src.device
+        src = torch.cat([p.src + o for p, o in zip(parts, node_off)])
+        dst = torch.cat([p.dst + o for p, o in zip(parts, node_off)])
+        crow = torch.cat([p.crow[:-1] + o for p, o in zip(parts, edge_off)]
+                         + [torch.tensor([sum(e)], dtype=parts[0].crow.dtype, device=dev)])
+        return cls(sum(n), src, dst, crow, _parts=(tuple(parts), node_off, edge_off))
+
     @property
     def n_edges(self) -> int:
         return int(self.src.shape[0])
 
+    @property
+    def members(self) -> tuple | None:
+        """The graphs a direct_sum was made of, in order (None for a graph built from edges)."""
+        return None if self._parts is None else self._parts[0]
+
     def heads(self, h: int) -> HeadCSR:
         if h not in self._heads:
-            self._heads[h] = self._head_csr(h)
+            self._heads[h] = self._head_csr(h) if self._parts is None else self._summed_head_csr(h)
         return self._heads[h]
+
+    def _summed_head_csr(self, h: int) -> HeadCSR:
+        """The head-folded pattern of a direct sum: the members' patterns, shifted block by block."""
+        parts, node_off, edge_off = self._parts
+        pats = [p.heads(h) for p in parts]
+        total = torch.tensor([self.n_edges * h], dtype=self.crow.dtype, device=self.crow.device)
+
+        def cat(name: str, offsets, last=None):
+            pieces = [getattr(q, name)[:-1] + o * h if last is not None else getattr(q, name) + o * h
+                      for q, o in zip(pats, offsets)]
+            return torch.cat(pieces + ([last] if last is not None else []))
+
+        return HeadCSR(self.n_nodes * h, cat("crow", edge_off, total), cat("col", node_off), cat("val_perm", edge_off),
+                       cat("crow_t", edge_off, total), cat("col_t", node_off), cat("t_perm", edge_off))
 
     def _head_csr(self, h: int) -> HeadCSR:
         n, e, dev = self.n_nodes, self.n_edges, self.src.device

@@ -22,7 +22,7 @@ class PreparedCase:
         self.data = data.clone()
         cfg = model.cfg
         self.graph = None
-        if cfg.gat_kernel == "sparse" and "gat" in (cfg.conv, cfg.decoder):
+        if cfg.uses_attention_graph:
             self.graph = AttentionGraph.from_edge_index(self.data.edge_index, self.data.num_nodes)
             for h in {m.heads for m in model.modules() if isinstance(m, SparseGATConv)}:
                 self.graph.heads(h)
