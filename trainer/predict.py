@@ -31,6 +31,7 @@ class Predictor:
         if int(rotations) < 1:
             raise TrainerError(f"--rotations must be ≥ 1, got {rotations}")
         self.rotations = int(rotations)
+        self._attention: dict = {}  # id(mesh edges) → (edges, AttentionGraph on self.device)
         self.state = state
         self.cfg = TrainConfig.from_dict(state["train_config"])
         self.norm = Normalisation.from_dict(state["normalisation"])
@@ -84,12 +85,31 @@ class Predictor:
         out = []
         for i in range(0, len(items), batch_size):
             chunk = items[i:i + batch_size]
-            batch = Batch.from_data_list([self.graph(f, p) for f, p, _ in chunk]).to(self.device)
+            batch = self._batch(Batch, chunk)
             d = self._forward(batch)
             d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
             sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
             out.extend(np.split(d, np.cumsum(sizes)[:-1]))
         return _finite(out, self.run_label)
+
+    def _batch(self, batch_cls, items: list):
+        """The cases [(MeshFeatures, params, key)] as one batch on the device; for the sparse GAT
+        kernel it carries its attention graph, assembled from each mesh's (built once per mesh)."""
+        batch = batch_cls.from_data_list([self.graph(f, p) for f, p, _ in items]).to(self.device)
+        if self.cfg.model.uses_attention_graph:
+            from .sparse_gat import AttentionGraph
+
+            batch.attention_graph = AttentionGraph.direct_sum([self._mesh_attention(f) for f, _, _ in items])
+        return batch
+
+    def _mesh_attention(self, feat: MeshFeatures):
+        key = id(feat.edge_index)
+        if key not in self._attention:  # the edges are kept with it, so the id stays theirs
+            from .sparse_gat import AttentionGraph
+
+            edges = feat.edge_index
+            self._attention[key] = (edges, AttentionGraph.from_edge_index(edges.to(self.device), feat.ed_mm.shape[0]))
+        return self._attention[key][1]
 
     def graph(self, feat: MeshFeatures, params):
         """One unlabelled case as this network's input graph."""
@@ -128,8 +148,7 @@ class Predictor:
             return (time.perf_counter() - t) / len(items) * 1e3
         from torch_geometric.data import Batch
 
-        graphs = [Batch.from_data_list([self.graph(f, p) for f, p, _ in items[i:i + batch_size]]).to(self.device)
-                  for i in range(0, len(items), batch_size)]
+        graphs = [self._batch(Batch, items[i:i + batch_size]) for i in range(0, len(items), batch_size)]
         with torch.no_grad():
             for _ in range(warmup):
                 self._forward(graphs[0])
