@@ -400,7 +400,7 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
               as_json: bool = typer.Option(False, "--json")):
     """Forward-solve their unloaded meshes with their parameters; mismatch to their ED meshes
     (--direction inverse: unload their ED meshes; mismatch to their unloaded meshes).
-    The defaults follow their pipeline (spring base, their C convention and fibre rule, degree 4)."""
+    The defaults follow their pipeline (heartFEM's base, their C convention and fibre rule, degree 4)."""
     from orchestrator.l2u_check import run_l2u_check
     from storage.store import StoreError
 
@@ -1162,8 +1162,10 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     from rich.table import Table
 
     con = Console(width=160)
+    made = ", ".join(part for part in (s["fidelity"], None if s["seed"] is None else f"seed {s['seed']}",
+                                       None if s["mesh_nodes"] is None else f"~{s['mesh_nodes']} nodes") if part)
     con.print(f"[bold]{store}[/bold]: {s['shapes']} shapes × {s['cases_per_shape']} cases = {s['total']} "
-              f"({s['fidelity']}, seed {s['seed']}, ~{s['mesh_nodes']} nodes; {s['shapes_ready']} shapes meshed)")
+              f"({made}{'; ' if made else ''}{s['shapes_ready']} shapes meshed)")
     pct = lambda n: f"{100 * n / s['total']:.1f} %" if s["total"] else "—"  # noqa: E731
     con.print(f"done {s['done']} ({pct(s['done'])}), failed {s['failed']} ({pct(s['failed'])}), "
               f"pending {s['pending']} ({pct(s['pending'])})")
