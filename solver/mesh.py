@@ -248,9 +248,14 @@ def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=Non
         if (counts > 1).any():
             raise MeshError(f"{int((counts > 1).sum())} boundary triangles carry more than one surface tag; each must be "
                             f"endocardium, epicardium or base, once")
-        if len(distinct) < len(outward):
-            raise MeshError(f"{len(outward) - len(distinct)} of the {len(outward)} boundary triangles carry no surface "
-                            f"tag; endocardium, epicardium and base must cover the whole boundary")
+        if len(distinct) < len(outward):  # untagged triangles may only close small voids, as tag_surfaces allows
+            tagged_keys = set(map(tuple, distinct))
+            is_tagged = np.array([key in tagged_keys for key in outward])
+            labels = _facet_components(np.array(list(outward.values())))
+            gaps = np.isin(labels[~is_tagged], labels[is_tagged])
+            if gaps.any():
+                raise MeshError(f"{int(gaps.sum())} of the {len(outward)} boundary triangles carry no surface tag; "
+                                f"endocardium, epicardium and base must cover the wall's boundary")
     for name, faces in (("endocardium", endo), ("epicardium", epi), ("base", base)):
         if len(faces) == 0:
             raise MeshError(f"mesh has no {name} surface")

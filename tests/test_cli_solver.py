@@ -315,6 +315,25 @@ def test_shape_model_mesh_written_and_read_back_identically(tmp_path):
     assert len(back.endo) == len(lv.endo) and len(back.base) == len(lv.base)
 
 
+def test_a_mesh_with_a_small_void_reads_back(tmp_path):
+    """Surfaces found from the geometry leave a small closed void in the wall untagged; the file written
+    from that mesh must read back (the tags-cover-the-boundary check spares pieces no tag touches)."""
+    from solver.mesh import boundary_facets, make_mesh
+
+    lv = mesh_lv(lv_shape(0), 800)
+    skin = np.vstack([lv.endo, lv.epi, lv.base])
+    skin_edges = {tuple(sorted(e)) for f in skin for e in ((f[0], f[1]), (f[1], f[2]), (f[0], f[2]))}
+    inner = next(i for i, tet in enumerate(lv.tets)  # a tet with no edge on the surface: its removal leaves a void
+                 if not any(tuple(sorted((tet[a], tet[b]))) in skin_edges for a in range(4) for b in range(a + 1, 4)))
+    holed = make_mesh(lv.nodes, np.delete(lv.tets, inner, axis=0))
+    assert len(holed.endo) == len(lv.endo) and len(holed.epi) == len(lv.epi)
+    assert len(boundary_facets(holed.tets)) == len(skin) + 4  # the void's four triangles carry no tag
+    path = tmp_path / "void.vtu"
+    write_mesh(path, holed)
+    back = read_mesh(path)
+    assert back.n_nodes == holed.n_nodes and len(back.tets) == len(lv.tets) - 1
+
+
 def test_node_order_is_a_convention_not_an_inversion(tmp_path, lv_file):
     """Writers such as dolfin mix tet node orders; such meshes are valid and get reoriented."""
     lv = read_mesh(lv_file)

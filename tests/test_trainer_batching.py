@@ -136,3 +136,16 @@ def test_table_on_cuda_equals_host_collation():
 
     ref = AttentionGraph.from_edge_index(b.edge_index, b.num_nodes)
     assert torch.equal(graph.src, ref.src) and torch.equal(graph.heads(4).val_perm, ref.heads(4).val_perm)
+    # a table kept in host memory (too large for the GPU): its batches' attention graphs are on the GPU
+    # all the same, since Batch.to moves tensors only
+    host = GraphTable(graphs, "cpu", attention=True, attention_device="cuda").batch(order)
+    assert not host.x.is_cuda and host.attention_graph.src.is_cuda
+    from dataclasses import replace
+
+    from trainer.config import named_config
+    from trainer.model import build_model
+
+    model = build_model(replace(named_config("paper"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8),
+                        0.1).cuda().eval()
+    with torch.no_grad():
+        torch.testing.assert_close(model(host.to("cuda"), cycle=False)[0], model(b.to("cuda"), cycle=False)[0])

@@ -32,7 +32,8 @@ class GraphTable:
     the edges. Every graph must carry the same attributes, all of them in NODE_KEYS, GRAPH_KEYS or
     edge_index."""
 
-    def __init__(self, graphs: Sequence[Data], device: torch.device | str = "cpu", attention: bool = False):
+    def __init__(self, graphs: Sequence[Data], device: torch.device | str = "cpu", attention: bool = False,
+                 attention_device: torch.device | str | None = None):
         if not len(graphs):
             raise ValueError("a graph table needs at least one graph")
         self.device = torch.device(device)
@@ -60,6 +61,9 @@ class GraphTable:
         self.n_edges = np.array([int(e.shape[1]) for e in edges], dtype=np.int64)
         self._edge_list = [e.to(self.device) for e in edges]
         self.attention = attention
+        # where the attention graphs live: the device the model runs on (a batch's tensors follow it
+        # there with Batch.to, its attention graph would not)
+        self.attention_device = torch.device(attention_device) if attention_device is not None else self.device
         self._attention: dict = {}  # topology → its AttentionGraph (self loops, CSR order, head patterns)
         self._nodes = {k: torch.cat([g[k] for g in graphs], dim=0).to(self.device) for k in self.node_keys}
         self._graphs = {k: torch.cat([g[k] for g in graphs], dim=0).to(self.device) for k in self.graph_keys}
@@ -104,7 +108,7 @@ class GraphTable:
     def _attention_graph(self, topology: int) -> AttentionGraph:
         """One mesh's AttentionGraph, built on first use and kept (its head patterns too)."""
         if topology not in self._attention:
-            edges = self._edge_list[topology]
+            edges = self._edge_list[topology].to(self.attention_device)
             n = int(self.n_nodes[np.flatnonzero(self.topology == topology)[0]])
             self._attention[topology] = AttentionGraph.from_edge_index(edges, n)
         return self._attention[topology]

@@ -96,7 +96,7 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     # from the mesh's (not under torch.compile, which would trace that assembly on every new batch)
     attention = cfg.uses_attention_graph and not compile_model
     cases = [graph() for _ in range(max(batches))]
-    inference_table = GraphTable(cases, table_device(cases, dev), attention) if attention else None
+    inference_table = GraphTable(cases, table_device(cases, dev), attention, dev) if attention else None
     for b in batches:
         data = Batch.from_data_list(cases[:b]).to(dev)
 
@@ -107,7 +107,7 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         s = _timed(infer, dev, min_s, first=compile_s)
         row = {"batch": b, "ms_per_batch": s * 1e3, "ms_per_case": s * 1e3 / b}
         if inference_table is not None:  # the batch and its attention graph built in each call
-            s = _timed(lambda: infer(inference_table.batch(range(b))), dev, min_s)
+            s = _timed(lambda: infer(inference_table.batch(range(b)).to(dev, non_blocking=True)), dev, min_s)
             row["table_ms_per_case"] = s * 1e3 / b
         rows.append(row)
     from .static import PreparedCase
@@ -118,7 +118,7 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
                     "capture_error": prepared.capture_error}
     tb = train_batch or (128 if dev.type == "cuda" else 32)
     pool = [graph() for _ in range(2 * tb)]  # the cases batches are drawn from, as in an epoch
-    table = GraphTable(pool, table_device(pool, dev), attention)
+    table = GraphTable(pool, table_device(pool, dev), attention, dev)
     pick = np.random.default_rng(seed + 1)
 
     def draw() -> list:
@@ -128,8 +128,9 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         return Batch.from_data_list([pool[i] for i in draw()]).to(dev, non_blocking=True)
 
     building = {"pyg_ms": _timed(pyg_batch, dev, min_s) * 1e3,
-                "table_ms": _timed(lambda: table.batch(draw()), dev, min_s) * 1e3, "table_device": str(table.device)}
-    data = table.batch(draw())
+                "table_ms": _timed(lambda: table.batch(draw()).to(dev, non_blocking=True), dev, min_s) * 1e3,
+                "table_device": str(table.device)}
+    data = table.batch(draw()).to(dev, non_blocking=True)
     model.train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3, weight_decay=1e-4)
     average = WeightAverage(model, cfg.ema_decay) if cfg.ema_decay > 0 else None
@@ -148,7 +149,7 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
 
     def loop_step():  # the training loop's step with its batch built from the table
         nonlocal data
-        data = table.batch(draw())
+        data = table.batch(draw()).to(dev, non_blocking=True)
         step()
 
     building["loop_step_ms"] = _timed(loop_step, dev, min_s, min_runs=2) * 1e3

@@ -102,7 +102,7 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
     flags = [bool(g.labelled.item()) for g in bundle.train]
     n_lab = labelled_per_batch(cfg.batch_size, cfg.sr, cfg.labelled_share)
     attention = cfg.model.uses_attention_graph
-    table = GraphTable(bundle.train, table_device(bundle.train, dist.device), attention)
+    table = GraphTable(bundle.train, table_device(bundle.train, dist.device), attention, dist.device)
     if n_lab and any(flags) and not all(flags):
         train_sampler = MixedBatchSampler([i for i, f in enumerate(flags) if f], [i for i, f in enumerate(flags) if not f],
                                           cfg.batch_size, n_lab, cfg.seed, dist.rank, dist.world)
@@ -119,7 +119,8 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
     shard = validation_shard(bundle.val, dist.rank, dist.world)
     val = None
     if shard:
-        val = TableLoader(GraphTable(shard, table_device(shard, dist.device), attention), chunks(len(shard), cfg.batch_size))
+        val = TableLoader(GraphTable(shard, table_device(shard, dist.device), attention, dist.device),
+                          chunks(len(shard), cfg.batch_size))
     return train, train_sampler, val
 
 

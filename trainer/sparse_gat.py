@@ -80,11 +80,10 @@ class AttentionGraph:
         e = [p.n_edges for p in parts]
         node_off = [0, *itertools.accumulate(n)][:-1]
         edge_off = [0, *itertools.accumulate(e)][:-1]
-        dev = parts[0].src.device
         src = torch.cat([p.src + o for p, o in zip(parts, node_off)])
         dst = torch.cat([p.dst + o for p, o in zip(parts, node_off)])
-        crow = torch.cat([p.crow[:-1] + o for p, o in zip(parts, edge_off)]
-                         + [torch.tensor([sum(e)], dtype=parts[0].crow.dtype, device=dev)])
+        # the closing entry from the last member, on its device (a host tensor copied to a GPU would wait for it)
+        crow = torch.cat([p.crow[:-1] + o for p, o in zip(parts, edge_off)] + [parts[-1].crow[-1:] + edge_off[-1]])
         return cls(sum(n), src, dst, crow, _parts=(tuple(parts), node_off, edge_off))
 
     @property
@@ -105,15 +104,15 @@ class AttentionGraph:
         """The head-folded pattern of a direct sum: the members' patterns, shifted block by block."""
         parts, node_off, edge_off = self._parts
         pats = [p.heads(h) for p in parts]
-        total = torch.tensor([self.n_edges * h], dtype=self.crow.dtype, device=self.crow.device)
 
-        def cat(name: str, offsets, last=None):
-            pieces = [getattr(q, name)[:-1] + o * h if last is not None else getattr(q, name) + o * h
-                      for q, o in zip(pats, offsets)]
-            return torch.cat(pieces + ([last] if last is not None else []))
+        def cat(name: str, offsets, row_pointer: bool = False):
+            if row_pointer:  # each member's pointers but its last; the last member's closes the array
+                pieces = [getattr(q, name)[:-1] + o * h for q, o in zip(pats, offsets)]
+                return torch.cat(pieces + [getattr(pats[-1], name)[-1:] + offsets[-1] * h])
+            return torch.cat([getattr(q, name) + o * h for q, o in zip(pats, offsets)])
 
-        return HeadCSR(self.n_nodes * h, cat("crow", edge_off, total), cat("col", node_off), cat("val_perm", edge_off),
-                       cat("crow_t", edge_off, total), cat("col_t", node_off), cat("t_perm", edge_off))
+        return HeadCSR(self.n_nodes * h, cat("crow", edge_off, True), cat("col", node_off), cat("val_perm", edge_off),
+                       cat("crow_t", edge_off, True), cat("col_t", node_off), cat("t_perm", edge_off))
 
     def _head_csr(self, h: int) -> HeadCSR:
         n, e, dev = self.n_nodes, self.n_edges, self.src.device
