@@ -80,22 +80,22 @@ class Predictor:
         """items: [(MeshFeatures, params [4], cache key or None)] → [displacement mm [n,3]]."""
         if self.kind == "pca":
             return _finite([self.pca.predict(f, p, self.norm, key) for f, p, key in items], self.run_label)
-        from torch_geometric.data import Batch
-
         out = []
         for i in range(0, len(items), batch_size):
             chunk = items[i:i + batch_size]
-            batch = self._batch(Batch, chunk)
+            batch = self._batch(chunk)
             d = self._forward(batch)
             d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
             sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
             out.extend(np.split(d, np.cumsum(sizes)[:-1]))
         return _finite(out, self.run_label)
 
-    def _batch(self, batch_cls, items: list):
+    def _batch(self, items: list):
         """The cases [(MeshFeatures, params, key)] as one batch on the device; for the sparse GAT
         kernel it carries its attention graph, assembled from each mesh's (built once per mesh)."""
-        batch = batch_cls.from_data_list([self.graph(f, p) for f, p, _ in items]).to(self.device)
+        from torch_geometric.data import Batch
+
+        batch = Batch.from_data_list([self.graph(f, p) for f, p, _ in items]).to(self.device)
         if self.cfg.model.uses_attention_graph:
             from .sparse_gat import AttentionGraph
 
@@ -146,9 +146,7 @@ class Predictor:
             for f, p, key in items:
                 self.pca.predict(f, p, self.norm, key)
             return (time.perf_counter() - t) / len(items) * 1e3
-        from torch_geometric.data import Batch
-
-        graphs = [self._batch(Batch, items[i:i + batch_size]) for i in range(0, len(items), batch_size)]
+        graphs = [self._batch(items[i:i + batch_size]) for i in range(0, len(items), batch_size)]
         with torch.no_grad():
             for _ in range(warmup):
                 self._forward(graphs[0])
