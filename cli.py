@@ -1049,7 +1049,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         from orchestrator.plan import cluster_cores, make_plan
 
         cores = num_cpus or (2 if local else cluster_cores())
-        plan = make_plan(spec, store, stored, cores=cores, warm_start=warm_start)
+        plan = make_plan(spec, store, stored, cores=cores, warm_start=warm_start, retry_failed=retry_failed)
         if as_json:
             typer.echo(json_line(plan))
             return
@@ -1089,7 +1089,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         typer.echo(json_line(report.as_dict()))
         return
     rate = report.throughput
-    typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_before + report.failed} failed "
+    typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_now} failed "
                f"of {report.total} ({report.done} done and {report.failed} failed in this run, "
                f"{report.submitted} submitted); meshing {report.phase1_s:.1f} s, pairs {report.phase2_s:.1f} s "
                f"on {report.cpus:g} CPUs ({rate:.2f} cases/s)"

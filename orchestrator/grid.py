@@ -139,6 +139,8 @@ class SweepSpec:
         """How this request differs from the store's (empty: it may resume that store)."""
         stored = SweepSpec.from_attrs(attrs)
         out = []
+        if not np.array_equal(np.asarray(attrs.get("case_params"), dtype=float).reshape(-1, 4), stored.case_params()):
+            out.append("the store's case_params do not follow its grid (edited by hand?); it cannot be resumed")
         if stored.shapes != self.shapes:
             out.append(f"--shapes {self.shapes} (store has {stored.shapes})")
         for a in AXES:

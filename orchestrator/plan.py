@@ -57,9 +57,9 @@ def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
 
 
 def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: int | None = None,
-              calibration: bool = True, warm_start: bool = True) -> dict:
+              calibration: bool = True, warm_start: bool = True, retry_failed: bool = False) -> dict:
     counts = existing_counts(location, spec) if store_attrs is not None else {"done": 0, "failed": 0}
-    remaining = spec.n_cases - counts["done"] - counts["failed"]
+    remaining = spec.n_cases - counts["done"] - (0 if retry_failed else counts["failed"])
     plan = {
         "store": str(location), "resume": store_attrs is not None, "shapes": spec.shapes,
         "cases_per_shape": spec.cases_per_shape, "cases": spec.n_cases, "done": counts["done"],

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from storage.lock import WriterLock, check_free
+from storage.lock import LOCK_NAME, WriterLock, check_free
 from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, stats_row
 
 from .grid import MAX_CHAIN, SweepSpec, pressure_chains
@@ -47,6 +47,7 @@ class SweepReport:
     meshed_shapes: int = 0
     mesh_failures: int = 0
     lost: int = 0  # cases of tasks lost to the infrastructure (worker or node died after retries): left pending
+    retried_failed: int = 0  # of failed_before, the cases --retry-failed submitted again
     phase1_s: float = 0.0
     phase2_s: float = 0.0
     wall_s: float = 0.0
@@ -54,6 +55,11 @@ class SweepReport:
     run: int = -1
     driver_store_s: float = 0.0  # driver time spent validating + writing results
     records: list = field(default_factory=list, repr=False)  # per finished task: (shape, k, status)
+
+    @property
+    def failed_now(self) -> int:
+        """Failed cases in the store after the run: those not retried, and this run's failures."""
+        return self.failed_before - self.retried_failed + self.failed
 
     @property
     def throughput(self) -> float:
@@ -73,6 +79,9 @@ def check_request(spec: SweepSpec, location: str, for_writing: bool = True) -> d
     (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line).
     `for_writing` (not for a dry run) also needs a writable store no other driver is writing."""
     spec.validate()
+    if for_writing and str(location).startswith("memory://"):
+        raise ValueError(f"store {location}: a memory:// store vanishes when generate exits; give a folder or an "
+                         f"object-store URL (s3://…)")
     attrs = inspect_store(location)
     if for_writing:
         _check_writable(location)
@@ -97,6 +106,16 @@ def _check_writable(location: str) -> None:
     folder = path if path.is_dir() else path.parent
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"store {location}: {'it' if folder == path else f'the folder {folder}'} is not writable")
+    if not path.is_dir():
+        return
+    # what a resumed run writes: the lock, the root attributes, and the folders of every shape and array
+    shapes = path / "shapes"
+    parts = [path / LOCK_NAME, path / "zarr.json", shapes, shapes / "zarr.json"]
+    if shapes.is_dir():
+        parts += [p for shape in shapes.iterdir() if shape.is_dir() for p in (shape, *shape.iterdir())]
+    for p in parts:
+        if p.exists() and not os.access(p, os.W_OK | (os.X_OK if p.is_dir() else 0)):
+            raise ValueError(f"store {location}: {p.relative_to(path)} is not writable by this user")
 
 
 def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) -> dict:
@@ -207,16 +226,37 @@ def solver_version() -> str:
 def open_or_create(spec: SweepSpec, location: str) -> tuple[PairStore, WriterLock]:
     """The store to write (created when new) and its writer lock, taken before the store is opened
     (opening clears a killed writer's temporary files, which must not be another live driver's)."""
+    from storage.store import _local_path, is_url
+
     attrs = check_request(spec, location)
-    if attrs is None:
-        store = PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()})
-        return store, WriterLock(location).acquire()
-    lock = WriterLock(location).acquire()
+    folder = None if is_url(location) else _local_path(location)
+    made = attrs is None and folder is not None and not folder.exists()
+    if made:  # the lock lives in the store's folder: two drivers starting a new store meet there
+        folder.mkdir(exist_ok=True)
     try:
+        lock = WriterLock(location).acquire()
+    except BaseException:
+        _remove_if_only_lock(folder if made else None)
+        raise
+    try:
+        if check_request(spec, location, for_writing=False) is None:  # again under the lock: still new?
+            return PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()}), lock
         return PairStore.open(location), lock
     except BaseException:
         lock.release()
+        _remove_if_only_lock(folder if made else None)
         raise
+
+
+def _remove_if_only_lock(folder) -> None:
+    """Remove a store folder this driver made when it holds nothing but the writer lock's file."""
+    if folder is None or not folder.is_dir() or any(p.name != LOCK_NAME for p in folder.iterdir()):
+        return
+    (folder / LOCK_NAME).unlink(missing_ok=True)
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
 
 
 def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = None, retry_failed: bool = False,
@@ -260,6 +300,7 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
     report.run = run
     mesh_remote, chain_remote = _remotes()
     kept_failed = 0 if retry_failed else report.failed_before
+    report.retried_failed = report.failed_before - kept_failed
     bar = _Progress(progress, spec.n_cases, report.done_before + kept_failed, kept_failed, console)
     try:
         with bar:

@@ -113,8 +113,8 @@ def inspect_store(location, storage_options: dict | None = None) -> dict | None:
             if not path.parent.exists():
                 raise StoreError(f"folder {path.parent} does not exist")
             return None
-        if path.is_dir() and not any(path.iterdir()):
-            return None
+        if path.is_dir() and all(p.name == ".heartctl-writer.lock" for p in path.iterdir()):
+            return None  # empty, or holding only the lock of a driver about to create the store (storage.lock)
         if not (path / "zarr.json").is_file():
             raise StoreError(f"{path} is a non-empty folder that is not a Zarr 3 store")
     try:
@@ -132,7 +132,24 @@ def inspect_store(location, storage_options: dict | None = None) -> dict | None:
     if attrs.get("schema_version") != SCHEMA_VERSION:
         raise StoreError(f"{location} has schema version {attrs.get('schema_version')!r}; "
                          f"this heartctl reads version {SCHEMA_VERSION}")
+    _check_root_attrs(location, attrs)
     return attrs
+
+
+ROOT_ATTR_TYPES = {"grid": dict, "case_params": list, "n_cases_per_shape": int, "acceptance": dict, "runs": list,
+                   "param_names": list, "stat_names": list}
+
+
+def _check_root_attrs(location, attrs: dict) -> None:
+    """StoreError when a root attribute every reader and writer relies on is missing, of the wrong
+    type, or when the case table disagrees with its own size (a hand-edited store)."""
+    for name, kind in ROOT_ATTR_TYPES.items():
+        if not isinstance(attrs.get(name), kind) or isinstance(attrs.get(name), bool):
+            raise StoreError(f"{location}: root attribute {name!r} is missing or not a {kind.__name__} "
+                             f"(got {type(attrs.get(name)).__name__}); the store was edited or damaged")
+    if len(attrs["case_params"]) != attrs["n_cases_per_shape"]:
+        raise StoreError(f"{location}: case_params lists {len(attrs['case_params'])} cases, n_cases_per_shape says "
+                         f"{attrs['n_cases_per_shape']}; the store was edited or damaged")
 
 
 def _first_line(exc: BaseException) -> str:
@@ -244,7 +261,10 @@ class PairStore:
                 raise ValueError(f"store attributes need {key!r}")
         if not is_url(location) and not _local_path(location).parent.exists():
             raise StoreError(f"folder {_local_path(location).parent} does not exist")
-        root = _open_group(location, "w-", storage_options)
+        # "w-" refuses a folder with anything in it; the writer lock's file (the driver creating the
+        # store holds it, storage.lock) is the one thing allowed there, once inspect_store found no store
+        only_lock = not is_url(location) and _local_path(location).is_dir() and inspect_store(location) is None
+        root = _open_group(location, "a" if only_lock else "w-", storage_options)
         root.attrs.update(_jsonable(base))
         root.create_group("shapes")
         return cls(root, location)

@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 from orchestrator.grid import SweepSpec
 from orchestrator.sweep import init_ray, run_sweep
-from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, summarize
+from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, inspect_store, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
 COL = {n: i for i, n in enumerate(STAT_NAMES)}
@@ -78,8 +78,14 @@ def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_pat
     np.testing.assert_array_equal(stats2[[0, 2]], stats[[0, 2]])
     np.testing.assert_array_equal(PairReader(loc).case(0, 0).unloaded, before.unloaded)
     # --retry-failed reruns only the failed case (and it fails again, with its reason)
+    from orchestrator.plan import make_plan
+
+    attrs = inspect_store(loc)
+    assert make_plan(sp, loc, attrs, calibration=False)["to_run"] == 0
+    assert make_plan(sp, loc, attrs, calibration=False, retry_failed=True)["to_run"] == 1  # the dry run agrees
     rep3 = run_sweep(sp, loc, progress=False, retry_failed=True)
     assert rep3.submitted == 1 and rep3.records == [(0, 1, FAILED)]
+    assert rep3.failed_now == 1  # the store's one failed case, not the retried one counted twice
     _, stats3 = _stats(loc)
     np.testing.assert_array_equal(stats3[[0, 2]], stats[[0, 2]])
     assert len(inspect_runs(loc)) == 3
@@ -265,6 +271,51 @@ def test_bad_arguments_exit_2_one_line_store_untouched(tmp_path, small_store, ca
     lines = [ln for ln in err.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("heartctl: error:"), err
     assert _snapshot(target) == before
+
+
+@pytest.mark.parametrize("edit", ["runs_null", "no_acceptance", "case_params_reversed"])
+def test_a_hand_edited_store_is_refused_and_left_alone(tmp_path, edit):
+    """Root attributes of the wrong type or missing, or a case table that no longer follows the
+    grid (its data would be labelled with the wrong parameters): exit 2, one line, store unchanged."""
+    from trainer_fixtures import make_tiny_store
+
+    store = Path(make_tiny_store(tmp_path / "t.zarr", shapes=1))
+    group = zarr.open_group(str(store), mode="r+")
+    if edit == "runs_null":
+        group.attrs["runs"] = None
+    elif edit == "no_acceptance":
+        del group.attrs["acceptance"]
+    else:
+        group.attrs["case_params"] = group.attrs["case_params"][::-1]
+    before = _snapshot(store)
+    for args in (["status", "--store", str(store)], ["generate", "--store", str(store)]):
+        if edit == "case_params_reversed" and args[0] == "status":
+            continue  # status reports it; generate must not resume it
+        code, err = _run_cli(args)
+        lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+        assert code == 2 and len(lines) == 1 and lines[0].startswith("heartctl: error:"), err
+        assert ("edited" in lines[0]) or ("damaged" in lines[0]), lines[0]
+    assert _snapshot(store) == before
+
+
+def test_a_store_whose_parts_this_user_cannot_write_is_refused_before_ray(tmp_path, monkeypatch):
+    """A resumed store must be writable below its top folder too (the lock, the shapes' folders):
+    found by check_request, not as a PermissionError mid-run."""
+    import orchestrator.sweep as sweep
+    from trainer_fixtures import make_tiny_store, tiny_spec
+
+    store = Path(make_tiny_store(tmp_path / "t.zarr", shapes=1))
+    (store / ".heartctl-writer.lock").touch()
+    real = os.access
+    for blocked in (".heartctl-writer.lock", "0"):
+        monkeypatch.setattr(sweep.os, "access", lambda p, mode, b=blocked: False if Path(p).name == b else real(p, mode))
+        with pytest.raises(ValueError, match="is not writable by this user"):
+            sweep.check_request(tiny_spec(shapes=1), str(store))
+
+
+def test_a_memory_store_is_refused_for_writing(tmp_path):
+    code, err = _run_cli(["generate", "--store", "memory://m1"] + SMALL)
+    assert code == 2 and "memory:// store vanishes" in err, err
 
 
 def test_status_and_dry_run_cli(tmp_path, small_store):
