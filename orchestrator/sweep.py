@@ -92,7 +92,20 @@ def check_request(spec: SweepSpec, location: str, for_writing: bool = True) -> d
         if conflicts:
             raise SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
                                 f"use the store's settings to resume, or a new --store")
+        _check_shape_tables(location, np.asarray(attrs["case_params"], dtype=float))
     return attrs
+
+
+def _check_shape_tables(location: str, case_params: np.ndarray) -> None:
+    """SweepConflict when a shape's own parameter table (what readers label its cases with) differs
+    from the store's case_params (what the driver solves): resuming would store mislabelled data."""
+    from storage.store import PairReader
+
+    reader = PairReader(location)
+    for s in reader.shape_ids():
+        if not np.array_equal(reader.case_params(s), case_params):
+            raise SweepConflict(f"store {location}: shape {s}'s parameter table differs from the store's case_params "
+                                f"(edited by hand?); it cannot be resumed")
 
 
 def _check_writable(location: str) -> None:

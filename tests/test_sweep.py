@@ -273,7 +273,7 @@ def test_bad_arguments_exit_2_one_line_store_untouched(tmp_path, small_store, ca
     assert _snapshot(target) == before
 
 
-@pytest.mark.parametrize("edit", ["runs_null", "no_acceptance", "case_params_reversed"])
+@pytest.mark.parametrize("edit", ["runs_null", "no_acceptance", "case_params_reversed", "shape_params_reversed"])
 def test_a_hand_edited_store_is_refused_and_left_alone(tmp_path, edit):
     """Root attributes of the wrong type or missing, or a case table that no longer follows the
     grid (its data would be labelled with the wrong parameters): exit 2, one line, store unchanged."""
@@ -285,11 +285,14 @@ def test_a_hand_edited_store_is_refused_and_left_alone(tmp_path, edit):
         group.attrs["runs"] = None
     elif edit == "no_acceptance":
         del group.attrs["acceptance"]
-    else:
+    elif edit == "case_params_reversed":
         group.attrs["case_params"] = group.attrs["case_params"][::-1]
+    else:  # the shape's own table, which readers label its cases with
+        params = group["shapes/0/params"]
+        params[...] = params[...][::-1]
     before = _snapshot(store)
     for args in (["status", "--store", str(store)], ["generate", "--store", str(store)]):
-        if edit == "case_params_reversed" and args[0] == "status":
+        if edit.endswith("_reversed") and args[0] == "status":
             continue  # status reports it; generate must not resume it
         code, err = _run_cli(args)
         lines = [ln for ln in err.strip().splitlines() if ln.strip()]
