@@ -252,7 +252,9 @@ def open_or_create(spec: SweepSpec, location: str) -> tuple[PairStore, WriterLoc
         _remove_if_only_lock(folder if made else None)
         raise
     try:
-        if check_request(spec, location, for_writing=False) is None:  # again under the lock: still new?
+        # a store that looked new may have been made (and finished) by another driver before this one
+        # got the lock: check again under it
+        if attrs is None and check_request(spec, location, for_writing=False) is None:
             return PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()}), lock
         return PairStore.open(location), lock
     except BaseException:

@@ -17,9 +17,7 @@ import os
 import socket
 import time
 
-from .store import StoreError, _local_path, is_url
-
-LOCK_NAME = ".heartctl-writer.lock"
+from .store import LOCK_NAME, StoreError, _local_path, is_url
 # holder() probes the lock by taking it for a moment; a writer that finds it busy tries again for this
 # long before it believes another writer holds it (a real writer holds it for the whole sweep).
 PROBE_WAIT_S = 1.0

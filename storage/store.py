@@ -101,6 +101,9 @@ def _open_group(location, mode: str, storage_options: dict | None = None):
     return zarr.open_group(LocalStore(_local_path(location), read_only=(mode == "r")), mode=mode, zarr_format=3)
 
 
+LOCK_NAME = ".heartctl-writer.lock"  # the writer lock's file in a local store (storage.lock)
+
+
 def inspect_store(location, storage_options: dict | None = None) -> dict | None:
     """Root attributes of the heartctl store at `location`, or None when there is none yet.
     Read-only. Raises StoreError for a path that is a file, a folder that is not a Zarr store,
@@ -113,7 +116,7 @@ def inspect_store(location, storage_options: dict | None = None) -> dict | None:
             if not path.parent.exists():
                 raise StoreError(f"folder {path.parent} does not exist")
             return None
-        if path.is_dir() and all(p.name == ".heartctl-writer.lock" for p in path.iterdir()):
+        if path.is_dir() and all(p.name == LOCK_NAME for p in path.iterdir()):
             return None  # empty, or holding only the lock of a driver about to create the store (storage.lock)
         if not (path / "zarr.json").is_file():
             raise StoreError(f"{path} is a non-empty folder that is not a Zarr 3 store")

@@ -42,6 +42,13 @@ def _csr(crow: Tensor, col: Tensor, values: Tensor, size: int) -> Tensor:
         return torch.sparse_csr_tensor(crow, col, values, (size, size), check_invariants=False)
 
 
+def _summed_row_pointers(pointers: list, offsets: list) -> Tensor:
+    """CSR row pointers of a block-diagonal matrix from its blocks': each block's but its last entry,
+    shifted by the entries before it, then the last block's closing entry (taken on the device; a
+    host tensor copied to a GPU would wait for it)."""
+    return torch.cat([p[:-1] + o for p, o in zip(pointers, offsets)] + [pointers[-1][-1:] + offsets[-1]])
+
+
 def _crow(rows: Tensor, n_rows: int) -> Tensor:
     crow = torch.zeros(n_rows + 1, dtype=torch.long, device=rows.device)
     crow[1:] = torch.cumsum(torch.bincount(rows, minlength=n_rows), 0)
@@ -82,8 +89,7 @@ class AttentionGraph:
         edge_off = [0, *itertools.accumulate(e)][:-1]
         src = torch.cat([p.src + o for p, o in zip(parts, node_off)])
         dst = torch.cat([p.dst + o for p, o in zip(parts, node_off)])
-        # the closing entry from the last member, on its device (a host tensor copied to a GPU would wait for it)
-        crow = torch.cat([p.crow[:-1] + o for p, o in zip(parts, edge_off)] + [parts[-1].crow[-1:] + edge_off[-1]])
+        crow = _summed_row_pointers([p.crow for p in parts], edge_off)
         return cls(sum(n), src, dst, crow, _parts=(tuple(parts), node_off, edge_off))
 
     @property
@@ -105,14 +111,14 @@ class AttentionGraph:
         parts, node_off, edge_off = self._parts
         pats = [p.heads(h) for p in parts]
 
-        def cat(name: str, offsets, row_pointer: bool = False):
-            if row_pointer:  # each member's pointers but its last; the last member's closes the array
-                pieces = [getattr(q, name)[:-1] + o * h for q, o in zip(pats, offsets)]
-                return torch.cat(pieces + [getattr(pats[-1], name)[-1:] + offsets[-1] * h])
+        def cat(name: str, offsets):
             return torch.cat([getattr(q, name) + o * h for q, o in zip(pats, offsets)])
 
-        return HeadCSR(self.n_nodes * h, cat("crow", edge_off, True), cat("col", node_off), cat("val_perm", edge_off),
-                       cat("crow_t", edge_off, True), cat("col_t", node_off), cat("t_perm", edge_off))
+        def pointers(name: str):
+            return _summed_row_pointers([getattr(q, name) for q in pats], [o * h for o in edge_off])
+
+        return HeadCSR(self.n_nodes * h, pointers("crow"), cat("col", node_off), cat("val_perm", edge_off),
+                       pointers("crow_t"), cat("col_t", node_off), cat("t_perm", edge_off))
 
     def _head_csr(self, h: int) -> HeadCSR:
         n, e, dev = self.n_nodes, self.n_edges, self.src.device
