@@ -738,6 +738,8 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                                                    help="sparse (one SpMM per GAT layer) | pyg (GATConv)."),
                     mesh: Path = typer.Option(None, "--mesh", help="Time on this LV mesh (mm) instead of meshing one with gmsh."),
                     compile_model: bool = typer.Option(False, "--compile", help="torch.compile the model (dynamic shapes)."),
+                    profile: bool = typer.Option(False, "--profile", help="Also print torch.profiler's top operators "
+                                                 "of a training step and of the largest inference batch."),
                     as_json: bool = typer.Option(False, "--json")):
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
     from trainer.bench import bench_model
@@ -760,7 +762,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
         if mesh is not None and not mesh.is_file():
             raise ValueError(f"--mesh {mesh}: no such file")
         r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
-                        mesh_path=None if mesh is None else str(mesh), compile_model=compile_model)
+                        mesh_path=None if mesh is None else str(mesh), compile_model=compile_model, profile=profile)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
@@ -788,6 +790,9 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
     typer.echo(f"building a batch of {r['train_batch']}: {bb['table_ms']:.2f} ms from the training loop's graph table "
                f"(on {bb['table_device']}), {bb['pyg_ms']:.2f} ms by PyG's collation and copy; a step with its batch "
                f"built: {bb['loop_step_ms']:.0f} ms, {r['loop_graphs_per_s']:.1f} graphs/s")
+    for key, what in (("profile_train", "three training steps"), ("profile_inference", "three inferences of the largest batch")):
+        if key in r:
+            typer.echo(f"torch.profiler, {what}:\n{r[key]}")
 
 
 @bench_app.command("ablation")

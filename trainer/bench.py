@@ -41,13 +41,32 @@ def _timed(fn, device, min_s: float = 1.0, min_runs: int = 3, max_runs: int = 20
     return (time.perf_counter() - t0) / runs
 
 
+def _profile(fn, device, calls: int = 3, rows: int = 25) -> str:
+    """torch.profiler table of `calls` calls of fn (after one warm-up): the top `rows` operators by
+    self device time on a GPU, by self CPU time on a CPU."""
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()
+    _sync(device)
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        for _ in range(calls):
+            fn()
+        _sync(device)
+    key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=60)
+
+
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
                 train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0,
-                gat_kernel: str = "sparse", mesh_path: str | None = None, compile_model: bool = False) -> dict:
+                gat_kernel: str = "sparse", mesh_path: str | None = None, compile_model: bool = False,
+                profile: bool = False) -> dict:
     """mesh_path: time on this mesh (any format storage.meshfiles reads, mm) instead of meshing shape 0
     with gmsh for `nodes` nodes (lets a GPU host without gmsh run the benchmark). compile_model: run
     the batched inference and the training step through torch.compile (dynamic shapes; the first,
-    untimed call of each pays the compilation, reported as compile_s)."""
+    untimed call of each pays the compilation, reported as compile_s). profile: also return torch.profiler
+    tables (top operators by device time, or CPU time on a CPU) of three training steps and of three
+    batched inferences at the largest batch, as `profile_train` / `profile_inference`."""
     from torch_geometric.data import Batch
 
     tune_allocator()
@@ -153,7 +172,13 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         step()
 
     building["loop_step_ms"] = _timed(loop_step, dev, min_s, min_runs=2) * 1e3
-    return {"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+    profiles = {}
+    if profile:
+        profiles["profile_train"] = _profile(step, dev)
+        model.eval()
+        big = Batch.from_data_list(cases).to(dev)
+        profiles["profile_inference"] = _profile(lambda: infer(big), dev)
+    return {**profiles,"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
             "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows,
