@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # One short GPU check (the device tool runs it from the repository root; carry .gpu, made by
 # scripts/gpu_prepare.sh). In order of what matters most, each step time-boxed so that one slow step
-# cannot eat the lease: `heartctl bench model` on the paper-size model (sparse GAT kernel, bf16 then
-# fp32; training at batch 128 and 512), with torch.profiler's top kernels; the sparse GAT kernel's
-# and the graph table's CUDA tests; PyG's GATConv kernel for comparison; torch.compile.
+# cannot eat the lease: `heartctl bench model` on the paper-size model (sparse GAT kernel, bf16) with
+# torch.profiler's top kernels; the CUDA tests; PyG's GATConv kernel; then, where .gpu/store.zarr
+# exists, `heartctl train --no-ray --device cuda` on it, eager and with --compile (the real loop's
+# graphs/s); then fp32 and a training batch of 512.
 # Output goes to stdout and, where $OUT is set, to $OUT/gpu_check.log.
 # DEVICE=cpu runs the same steps on a CPU (to check the script itself).
 set -uo pipefail
@@ -11,7 +12,9 @@ cd "$(dirname "$0")/.."
 DEVICE=${DEVICE:-cuda}
 PY=${PYTHON:-python3}
 BATCHES=${BATCHES:-1,32,128,512}
+TB=${TRAIN_BATCH:-128}
 LOG=${OUT:+$OUT/gpu_check.log}
+RUNS=$(mktemp -d)
 export PYTHONPATH="$PWD:$PWD/.gpu/site${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 
 step() {  # step SECONDS TITLE COMMAND...
@@ -21,24 +24,30 @@ step() {  # step SECONDS TITLE COMMAND...
   [ $rc -eq 124 ] && echo "!! $title: stopped after $limit s"
   return 0
 }
-BENCH=($PY -c "from cli import main; main()" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu)
+HEARTCTL=($PY -c "from cli import main; main()")
+BENCH=("${HEARTCTL[@]}" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu)
+TRAIN=("${HEARTCTL[@]}" train --no-ray --device "$DEVICE" --store .gpu/store.zarr --batch-size "$TB"
+       --epochs "${EPOCHS:-8}" --patience 100)
 
 main() {
-$PY -m pip install -q --no-index --no-deps --target .gpu/site .gpu/wheels/*.whl 2>&1 | tail -2
+# meshio for the mesh; zarr and its codecs for the store (the GPU host has the rest)
+$PY -m pip install -q --no-index --no-deps --target .gpu/site .gpu/wheels/meshio-*.whl 2>&1 | tail -2
+$PY -m pip install -q --no-index --no-deps --target .gpu/site .gpu/train_wheels/*.whl 2>&1 | tail -2
 [ "$DEVICE" = cuda ] && nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm --format=csv,noheader
 $PY -c "import torch, torch_geometric; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'pyg', torch_geometric.__version__)"
-step 120 "sparse kernel, bf16, training batch ${TRAIN_BATCH:-128}, profiled" \
-  "${BENCH[@]}" --gat-kernel sparse --bf16 --batches "$BATCHES" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH} --profile
-step 90 "sparse kernel, fp32" "${BENCH[@]}" --gat-kernel sparse --batches "$BATCHES" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH}
-step 90 "sparse kernel, bf16, training batch ${TRAIN_BATCH_BIG:-512}" \
-  "${BENCH[@]}" --gat-kernel sparse --bf16 --batches "${BATCHES_BIG:-2048}" --train-batch "${TRAIN_BATCH_BIG:-512}"
-step 150 "CUDA tests" env PYTEST_DISABLE_PLUGIN_AUTOLOAD=1 $PY -m pytest -q -p no:cacheprovider \
+step 75 "sparse kernel, bf16, training batch $TB, profiled" \
+  "${BENCH[@]}" --gat-kernel sparse --bf16 --batches "$BATCHES" --train-batch "$TB" --profile
+step 75 "CUDA tests" env PYTEST_DISABLE_PLUGIN_AUTOLOAD=1 $PY -m pytest -q -p no:cacheprovider \
   tests/test_trainer_sparse_gat.py tests/test_trainer_batching.py
-for prec in "" "--bf16"; do
-  step 90 "pyg kernel ${prec:-fp32}" "${BENCH[@]}" --gat-kernel pyg $prec --batches "$BATCHES" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH}
-done
-step 180 "sparse kernel, bf16, torch.compile" \
-  "${BENCH[@]}" --gat-kernel sparse --bf16 --compile --batches "$BATCHES" ${TRAIN_BATCH:+--train-batch $TRAIN_BATCH}
+step 50 "pyg kernel, fp32" "${BENCH[@]}" --gat-kernel pyg --batches "1,${BATCHES##*,}" --train-batch "$TB"
+if [ -d .gpu/store.zarr ]; then
+  step 75 "heartctl train, bf16, eager" "${TRAIN[@]}" --bf16 --run-dir "$RUNS/eager"
+  step 180 "heartctl train, bf16, --compile" "${TRAIN[@]}" --bf16 --compile --run-dir "$RUNS/compiled"
+fi
+step 50 "sparse kernel, fp32" "${BENCH[@]}" --gat-kernel sparse --batches "$BATCHES" --train-batch "$TB"
+step 50 "sparse kernel, bf16, training batch ${TRAIN_BATCH_BIG:-512}" \
+  "${BENCH[@]}" --gat-kernel sparse --bf16 --batches "${BATCHES_BIG:-2048}" --train-batch "${TRAIN_BATCH_BIG:-512}"
 echo "== done ($(date +%T))"
 }
 main 2>&1 | tee ${LOG:-/dev/null}
+rm -rf "$RUNS"

@@ -1,12 +1,19 @@
 #!/usr/bin/env bash
-# Fill .gpu/ (git-ignored, a few MB) with what scripts/gpu_check.sh needs on a GPU host that has
-# Python 3.12, torch and torch-geometric but nothing else of ours: pure-Python wheels (meshio for the
-# mesh, typer/rich for the CLI, pytest for the CUDA tests) and one paper-size LV mesh (VTU, mm).
+# Fill .gpu/ (git-ignored, ~30 MB) with what scripts/gpu_check.sh needs on a GPU host that has
+# Python 3.12, torch, torch-geometric, typer and pytest but nothing else of ours: wheels of meshio
+# (meshes) and zarr with its codecs (the store), one paper-size LV mesh (VTU, mm) and a store of
+# 864 fast FE pairs (24 shapes of ~650 nodes; a few minutes here) for `heartctl train` there.
 # Run here (internet, .venv): bash scripts/gpu_prepare.sh ; then on the device: bash scripts/gpu_check.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
-mkdir -p .gpu/wheels
+mkdir -p .gpu/wheels .gpu/train_wheels
 .venv/bin/pip download -q --only-binary=:all: --python-version 3.12 --platform manylinux2014_x86_64 --no-deps \
-    -d .gpu/wheels meshio typer rich click shellingham markdown-it-py mdurl pygments pytest pluggy iniconfig packaging
+    -d .gpu/wheels meshio
+.venv/bin/pip download -q --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 --no-deps \
+    -d .gpu/train_wheels "zarr==$(.venv/bin/python -c 'import zarr; print(zarr.__version__)')" \
+    "numcodecs==$(.venv/bin/python -c 'import numcodecs; print(numcodecs.__version__)')" donfig google-crc32c
 .venv/bin/heartctl mesh --shape 0 --nodes 680 -o .gpu/lv650.vtu  # 643 nodes: the goal's ~650-node mesh
+[ -d .gpu/store.zarr ] || .venv/bin/heartctl generate --store .gpu/store.zarr --shapes "${SHAPES:-24}" \
+    --pressures 8,12,16 --stiffness 100,200,300 --endo 50,60 --epi=-50,-60 --fidelity fast --nodes 680
 du -sh .gpu

@@ -103,13 +103,13 @@ def test_cuda_kernel_matches_pyg(lv_edges, bf16):
     assert all(torch.isfinite(p.grad).all() for p in ours.parameters())
 
 
-def _prepared_setup(device):
+def _prepared_setup(device, gat_kernel="sparse"):
     from trainer.static import PreparedCase
 
     batch = _lv_batch(1).to(device)
     torch.manual_seed(4)
-    model = build_model(replace(named_config("paper"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8),
-                        0.1).to(device).eval()
+    model = build_model(replace(named_config("paper"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8,
+                                gat_kernel=gat_kernel), 0.1).to(device).eval()
     return model, batch, PreparedCase(model, batch)
 
 
@@ -135,6 +135,21 @@ def test_prepared_case_cuda_graph_replays():
     with torch.no_grad():
         expect = model(other, cycle=False)[0]
     torch.testing.assert_close(run(x2), expect, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_prepared_case_not_capturable_stays_eager_and_leaves_dropout_working():
+    """PyG's GATConv waits for the GPU (boolean masks): no capture is tried, the answer is the
+    model's, and training with dropout afterwards works (a failed capture used to break it)."""
+    model, batch, run = _prepared_setup("cuda", gat_kernel="pyg")
+    assert run.cuda_graph is None and "not capturable" in run.capture_error
+    with torch.no_grad():
+        expect = model(batch, cycle=False)[0]
+    torch.testing.assert_close(run(), expect)
+    model.train()
+    d_unl, d_ed = model(batch)
+    (d_unl.square().mean() + d_ed.square().mean()).backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
 def test_direct_sum_equals_the_batched_graph():

@@ -246,6 +246,7 @@ class TrainConfig:
     lr_patience: int = 10  # ReduceLROnPlateau
     lr_factor: float = 0.5
     bf16: bool = False  # autocast on CUDA only
+    compile: bool = False  # torch.compile the training forward/backward (dynamic shapes; minutes to compile)
     checkpoint_every: int = 1
     num_threads: int = 0  # torch threads per process (0: leave as is)
 

@@ -102,7 +102,10 @@ def _loaders(bundle: DataBundle, cfg: TrainConfig, dist: Dist):
     flags = [bool(g.labelled.item()) for g in bundle.train]
     n_lab = labelled_per_batch(cfg.batch_size, cfg.sr, cfg.labelled_share)
     attention = cfg.model.uses_attention_graph
-    table = GraphTable(bundle.train, table_device(bundle.train, dist.device), attention, dist.device)
+    # compiled, the model builds its attention graph inside the compiled code (a prebuilt one, a
+    # Python object of many tensors, would be traced anew for every batch)
+    table = GraphTable(bundle.train, table_device(bundle.train, dist.device), attention and not cfg.compile,
+                       dist.device)
     if n_lab and any(flags) and not all(flags):
         train_sampler = MixedBatchSampler([i for i, f in enumerate(flags) if f], [i for i, f in enumerate(flags) if not f],
                                           cfg.batch_size, n_lab, cfg.seed, dist.rank, dist.world)
@@ -304,6 +307,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             if isinstance(v, torch.Tensor) and k != "step":
                 s[k] = v.to(dist.device)
     wrapped = dist.wrap_model(model)
+    if cfg.compile and cfg.model.kind == "gnn":  # validation and checkpoints use the plain model
+        wrapped = torch.compile(wrapped, dynamic=True)
     train_loader, sampler, val_loader = _loaders(bundle, cfg, dist)
     writer = _tensorboard(run_dir) if writes else None
     if writes:

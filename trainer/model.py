@@ -117,7 +117,7 @@ class CrossAttention(nn.Module):
     def forward(self, h, batch, tokens, mask=None):
         B, T, _ = tokens.shape
         if self.n_tokens == 1:
-            return self.norm(h + self.o(self.v(tokens[:, 0]))[batch])
+            return self.norm(h + self.o(self.v(tokens[:, 0])).index_select(0, batch))
         hd, node_mask = to_dense_batch(h, batch, batch_size=B)  # [B, Nmax, D]
         D = h.shape[1]
         dh = D // self.heads
@@ -163,7 +163,7 @@ class ConcatFusion(nn.Module):
         self.norm = nn.LayerNorm(dim)
 
     def forward(self, h, batch, tokens, mask=None):
-        return self.norm(h + self.lin(torch.cat([h, tokens[:, 0][batch]], dim=1)))
+        return self.norm(h + self.lin(torch.cat([h, tokens[:, 0].index_select(0, batch)], dim=1)))
 
 
 class MLPDecoder(nn.Module):
@@ -255,7 +255,7 @@ class HeartUnloadNet(nn.Module):
         if self.cfg.uses_wall:
             x = torch.cat([x, wall.to(x.dtype)], dim=1)
         if self.param_encoder is None:  # A5: parameters broadcast to the nodes
-            x = torch.cat([x, params[batch]], dim=1)
+            x = torch.cat([x, params.index_select(0, batch)], dim=1)
         h = self.encoder(x, edge_index)
         if self.pool is not None:
             tokens, mask = self.pool(h, batch, region, num_graphs)
@@ -321,7 +321,7 @@ class HeartUnloadNet(nn.Module):
         dec_edges = graph if graph is not None and self.cfg.decoder == "gat" else ei
         d = decoder(self.encode(x_in, enc_edges, batch, params, region, B, wall), dec_edges)
         size = self.output_scale(params)
-        return d if size is None else d * size.to(d.dtype)[batch].unsqueeze(1)
+        return d if size is None else d * size.to(d.dtype).index_select(0, batch).unsqueeze(1)
 
     def _reverse_on_labelled(self, data, batch, B: int, graph: AttentionGraph | None):
         """Dec_ed(encode(x̂_ED + ρ y)) on the labelled graphs' sub-batch (the loss ignores the others)."""

@@ -155,7 +155,7 @@ class _HeadSpMM(torch.autograd.Function):
         grad_out = grad_out.contiguous()
         grad_values = grad_x = None
         if ctx.needs_input_grad[1]:
-            grad_x = torch.sparse.mm(_csr(p.crow_t, p.col_t, values[p.t_perm], p.size), grad_out)
+            grad_x = torch.sparse.mm(_csr(p.crow_t, p.col_t, values.index_select(0, p.t_perm), p.size), grad_out)
         if ctx.needs_input_grad[0]:
             grad_values = torch.sparse.sampled_addmm(_csr(p.crow, p.col, torch.zeros_like(values), p.size),
                                                      grad_out, x.t()).values()
@@ -199,11 +199,13 @@ class SparseGATConv(nn.Module):
         xp = self.lin(x).view(-1, H, C)
         a_src = (xp * self.att_src).sum(-1)  # [N, H]
         a_dst = (xp * self.att_dst).sum(-1)
-        logits = F.leaky_relu(a_src[graph.src] + a_dst[graph.dst], self.negative_slope)
-        alpha = softmax(logits, graph.dst, num_nodes=graph.n_nodes)  # [E, H]
+        # index_select, not x[idx]: its gradient is an index_add, where indexing's sorts the indices
+        logits = F.leaky_relu(a_src.index_select(0, graph.src) + a_dst.index_select(0, graph.dst), self.negative_slope)
+        alpha = softmax(logits, ptr=graph.crow)  # [E, H]; edges sorted by target: segment reductions
         alpha = F.dropout(alpha, self.dropout, self.training)
         pattern = graph.heads(H)
-        out = _HeadSpMM.apply(alpha.reshape(-1)[pattern.val_perm], xp.reshape(-1, C), pattern).view(-1, H, C)
+        values = alpha.reshape(-1).index_select(0, pattern.val_perm)
+        out = _HeadSpMM.apply(values, xp.reshape(-1, C), pattern).view(-1, H, C)
         out = out.reshape(-1, H * C) if self.concat else out.mean(dim=1)
         return out + self.bias
 

@@ -11,6 +11,25 @@ from .model import HeartUnloadNet
 from .sparse_gat import AttentionGraph, SparseGATConv
 
 
+def _host_sync(fn) -> str | None:
+    """Why fn's CUDA work cannot be captured — the first operation in it that waits for the GPU
+    (data-dependent shapes: PyG's GATConv removes self loops with a boolean mask) — or None. Checked
+    before capturing: a capture that fails part-way leaves the CUDA random generator marked as
+    capturing, and every later dropout on that device fails ("Offset increment outside graph
+    capture"). The first call, which creates library handles, is not checked."""
+    fn()
+    previous = torch.cuda.get_sync_debug_mode()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        fn()
+    except RuntimeError as exc:
+        return f"not capturable, it waits for the GPU: {str(exc).splitlines()[0]}"
+    finally:
+        torch.cuda.set_sync_debug_mode(previous)
+    torch.cuda.synchronize()
+    return None
+
+
 class PreparedCase:
     """d_unl = runner(x, params) for graphs with `data`'s mesh (x [N, 3] normalised ED coordinates,
     params [B, 4] scaled parameters). cuda_graph: capture on CUDA devices (falls back to eager,
@@ -30,10 +49,12 @@ class PreparedCase:
         self.capture_error = None
         self._out = None
         if cuda_graph and self.data.x.is_cuda:
-            try:
-                self._capture()
-            except Exception as exc:  # some sparse kernels may not be capturable on some CUDA versions
-                self.cuda_graph, self.capture_error = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
+            self.capture_error = _host_sync(self._eager)
+            if self.capture_error is None:
+                try:
+                    self._capture()
+                except Exception as exc:  # some sparse kernels may not be capturable on some CUDA versions
+                    self.cuda_graph, self.capture_error = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
 
     def _eager(self) -> torch.Tensor:
         with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.bf16):
