@@ -256,6 +256,30 @@ def test_evaluate_prices_the_linear_response_of_networks_that_take_it(store, tmp
     assert evaluate_run(plain, store, "test", plots=False)["response_ms_per_mesh"] is None
 
 
+def test_single_cases_go_through_one_prepared_runner_per_mesh(store, tmp_path):
+    """Batch size 1 (unload, evaluate's single-case timing): one PreparedCase per mesh, made on first
+    use and kept for the last few meshes; the answers are the batched ones."""
+    from trainer.data import read_store
+
+    run = tmp_path / "run"
+    fit(_cfg(store, epochs=1), run)
+    pred = Predictor(load_run(run))
+    cases = read_store(store)
+    items = [(cases.features[k[0]], cases.params[k], None) for k in cases.keys]
+    meshes = {id(f) for f, _, _ in items}
+    assert len(meshes) > 1
+    one, many = pred.predict_many(items, 1), pred.predict_many(items, 32)
+    for a, b in zip(one, many):
+        np.testing.assert_allclose(a, b, atol=1e-5 * np.abs(b).max())
+    assert set(pred._runners) == meshes  # one runner per mesh, not per case
+    first = next(iter(pred._runners.values()))[1]
+    pred.predict_many(items, 1)
+    assert next(iter(pred._runners.values()))[1] is first  # reused, not rebuilt
+    pred._single(*items[0][:2], pred._runners, keep=1)
+    assert list(pred._runners) == [id(items[0][0])]  # the oldest dropped beyond `keep`
+    assert pred.time_ms_per_case(items, 1) > 0 and pred.time_ms_per_case(items, 4) > 0
+
+
 def test_rotation_averaged_prediction_turns_with_the_mesh(store, tmp_path):
     """Averaged over K turns about the long axis, the network's answer is exactly symmetric under a
     turn by 2π/K of the input (about the normalisation centre); K = 1 is the plain network."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +33,7 @@ class Predictor:
             raise TrainerError(f"--rotations must be ≥ 1, got {rotations}")
         self.rotations = int(rotations)
         self._attention: dict = {}  # id(mesh edges) → (edges, AttentionGraph on self.device)
+        self._runners: OrderedDict = OrderedDict()  # id(MeshFeatures) → (features, PreparedCase), last few
         self.state = state
         self.cfg = TrainConfig.from_dict(state["train_config"])
         self.norm = Normalisation.from_dict(state["normalisation"])
@@ -80,15 +82,43 @@ class Predictor:
         """items: [(MeshFeatures, params [4], cache key or None)] → [displacement mm [n,3]]."""
         if self.kind == "pca":
             return _finite([self.pca.predict(f, p, self.norm, key) for f, p, key in items], self.run_label)
+        if self._single_cases(batch_size):
+            return _finite([self._mm(self._single(f, p, self._runners)) for f, p, _ in items], self.run_label)
         out = []
         for i in range(0, len(items), batch_size):
             chunk = items[i:i + batch_size]
-            batch = self._batch(chunk)
-            d = self._forward(batch)
-            d = (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
+            d = self._mm(self._forward(self._batch(chunk)))
             sizes = [f.ed_mm.shape[0] for f, _, _ in chunk]
             out.extend(np.split(d, np.cumsum(sizes)[:-1]))
         return _finite(out, self.run_label)
+
+    def _mm(self, d: torch.Tensor) -> np.ndarray:
+        return (d.float() * self.norm.disp_scale_mm).cpu().numpy().astype(np.float64)
+
+    def _single_cases(self, batch_size: int) -> bool:
+        """One case at a time through a PreparedCase (trainer.static): everything that depends on the
+        mesh only done once per mesh, and on a GPU the forward pass replayed as a CUDA graph."""
+        return batch_size == 1 and self.rotations == 1 and self.kind == "gnn"
+
+    def _single(self, feat: MeshFeatures, params, runners: dict, keep: int = 8) -> torch.Tensor:
+        """Normalised displacement [n, 3] of one case by its mesh's PreparedCase, made on first use and
+        kept in `runners` by the features' identity (the features kept with it, so the id stays theirs);
+        the oldest beyond `keep` is dropped when runners is this predictor's own cache."""
+        from .static import PreparedCase
+
+        key = id(feat)
+        if key in runners:
+            if isinstance(runners, OrderedDict):
+                runners.move_to_end(key)
+        else:
+            from torch_geometric.data import Batch
+
+            case = Batch.from_data_list([self.graph(feat, params)]).to(self.device)
+            runners[key] = (feat, PreparedCase(self.model, case))
+        while runners is self._runners and len(runners) > keep:
+            runners.popitem(last=False)
+        g = self.graph(feat, params)
+        return runners[key][1](g.x.to(self.device), g.params.to(self.device))
 
     def _batch(self, items: list):
         """The cases [(MeshFeatures, params, key)] as one batch on the device; for the sparse GAT
@@ -146,15 +176,24 @@ class Predictor:
             for f, p, key in items:
                 self.pca.predict(f, p, self.norm, key)
             return (time.perf_counter() - t) / len(items) * 1e3
-        graphs = [self._batch(items[i:i + batch_size]) for i in range(0, len(items), batch_size)]
         with torch.no_grad():
+            if self._single_cases(batch_size):  # as predict_many: a prepared runner per mesh, made untimed
+                runners = {}
+                for f, p, _ in items:
+                    self._single(f, p, runners)
+                inputs = [(runners[id(f)][1], g.x.to(self.device), g.params.to(self.device))
+                          for f, g in ((f, self.graph(f, p)) for f, p, _ in items)]
+                calls = [lambda run=run, x=x, p=p: run(x, p) for run, x, p in inputs]
+            else:
+                graphs = [self._batch(items[i:i + batch_size]) for i in range(0, len(items), batch_size)]
+                calls = [lambda g=g: self._forward(g) for g in graphs]
             for _ in range(warmup):
-                self._forward(graphs[0])
+                calls[0]()
             self.sync()
             t = time.perf_counter()
             for _ in range(repeats):
-                for g in graphs:
-                    self._forward(g)
+                for call in calls:
+                    call()
             self.sync()
         return (time.perf_counter() - t) / (len(items) * repeats) * 1e3
 
