@@ -400,6 +400,7 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                      f"cycle {row['train_cycle']:.4g}), "
                      + (f"val {val_loss:.4g} / MD {val_md:.3f} mm, " if n_val else "no validation cases, ")
                      + f"lr {row['lr']:.2g}, {ep_s:.1f} s ({row['graphs_per_s']:.0f} graphs/s)"
+                     + (", torch.compile compiling" if cfg.compile and epoch == start_epoch else "")
                      + (" — early stop" if stopped else ""))
             if save:
                 ckpt = {**base_state(cfg, bundle, "gnn"), "model": cpu_state(model), "best_model": best_model,

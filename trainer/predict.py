@@ -178,9 +178,10 @@ class Predictor:
             return (time.perf_counter() - t) / len(items) * 1e3
         with torch.no_grad():
             if self._single_cases(batch_size):  # as predict_many: a prepared runner per mesh, made untimed
-                runners = {}
+                keep = max(8, len({id(f) for f, _, _ in items}))  # (those predict_many made are reused)
                 for f, p, _ in items:
-                    self._single(f, p, runners)
+                    self._single(f, p, self._runners, keep)
+                runners = self._runners
                 inputs = [(runners[id(f)][1], g.x.to(self.device), g.params.to(self.device))
                           for f, g in ((f, self.graph(f, p)) for f, p, _ in items)]
                 calls = [lambda run=run, x=x, p=p: run(x, p) for run, x, p in inputs]

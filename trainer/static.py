@@ -23,6 +23,8 @@ def _host_sync(fn) -> str | None:
     try:
         fn()
     except RuntimeError as exc:
+        if "synchroniz" not in str(exc):  # out of memory, a real fault: not ours to hide
+            raise
         return f"not capturable, it waits for the GPU: {str(exc).splitlines()[0]}"
     finally:
         torch.cuda.set_sync_debug_mode(previous)
@@ -49,12 +51,13 @@ class PreparedCase:
         self.capture_error = None
         self._out = None
         if cuda_graph and self.data.x.is_cuda:
-            self.capture_error = _host_sync(self._eager)
-            if self.capture_error is None:
-                try:
-                    self._capture()
-                except Exception as exc:  # some sparse kernels may not be capturable on some CUDA versions
-                    self.cuda_graph, self.capture_error = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
+            with torch.cuda.device(self.data.x.device):  # the streams of the data's GPU
+                self.capture_error = _host_sync(self._eager)
+                if self.capture_error is None:
+                    try:
+                        self._capture()
+                    except Exception as exc:  # some sparse kernels may not be capturable on some CUDA versions
+                        self.cuda_graph, self.capture_error = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
 
     def _eager(self) -> torch.Tensor:
         with torch.no_grad(), torch.autocast("cuda", dtype=torch.bfloat16, enabled=self.bf16):
@@ -79,8 +82,9 @@ class PreparedCase:
             self.data.params.copy_(params)
         if self.cuda_graph is None:
             return self._eager()
-        self.cuda_graph.replay()
-        return self._out.clone()
+        with torch.cuda.device(self.data.x.device):
+            self.cuda_graph.replay()
+            return self._out.clone()
 
 
 __all__ = ["PreparedCase"]
