@@ -4,7 +4,8 @@
 # cannot eat the lease: `heartctl bench model` on the paper-size model (sparse GAT kernel, bf16) with
 # torch.profiler's top kernels; the CUDA tests; PyG's GATConv kernel; then, where .gpu/store.zarr
 # exists, `heartctl train --no-ray --device cuda` on it, eager and with --compile (the real loop's
-# graphs/s); then fp32 and a training batch of 512.
+# graphs/s); then fp32, a training batch of 512, and bench model through torch.compile (~5 min on an H200
+# in all).
 # Output goes to stdout and, where $OUT is set, to $OUT/gpu_check.log.
 # DEVICE=cpu runs the same steps on a CPU (to check the script itself).
 set -uo pipefail
@@ -47,6 +48,8 @@ fi
 step 50 "sparse kernel, fp32" "${BENCH[@]}" --gat-kernel sparse --batches "$BATCHES" --train-batch "$TB"
 step 50 "sparse kernel, bf16, training batch ${TRAIN_BATCH_BIG:-512}" \
   "${BENCH[@]}" --gat-kernel sparse --bf16 --batches "${BATCHES_BIG:-2048}" --train-batch "${TRAIN_BATCH_BIG:-512}"
+step 180 "sparse kernel, bf16, torch.compile" \
+  "${BENCH[@]}" --gat-kernel sparse --bf16 --compile --batches "$BATCHES" --train-batch "$TB"
 echo "== done ($(date +%T))"
 }
 main 2>&1 | tee ${LOG:-/dev/null}

@@ -256,6 +256,19 @@ def test_evaluate_prices_the_linear_response_of_networks_that_take_it(store, tmp
     assert evaluate_run(plain, store, "test", plots=False)["response_ms_per_mesh"] is None
 
 
+def test_compiled_training_learns_what_eager_training_learns(store, tmp_path):
+    """--compile: torch.compile runs the training step (the attention graph built inside it) and
+    gives the eager run's losses; the checkpoint holds the plain model's weights."""
+    cfg = _cfg(store, model=replace(SMALL, dropout=0.0), epochs=1)
+    eager, compiled = fit(cfg, tmp_path / "eager"), fit(replace(cfg, compile=True), tmp_path / "compiled")
+    a, b = _rows(tmp_path / "eager" / "metrics.csv")[0], _rows(tmp_path / "compiled" / "metrics.csv")[0]
+    for k in ("train_loss", "val_loss"):
+        assert float(b[k]) == pytest.approx(float(a[k]), rel=1e-4)
+    weights = load_run(tmp_path / "compiled")["best_model"]
+    assert set(weights) == set(load_run(tmp_path / "eager")["best_model"])  # no "_orig_mod." prefixes
+    assert eager["epochs_run"] == compiled["epochs_run"] == 1
+
+
 def test_single_cases_go_through_one_prepared_runner_per_mesh(store, tmp_path):
     """Batch size 1 (unload, evaluate's single-case timing): one PreparedCase per mesh, made on first
     use and kept for the last few meshes; the answers are the batched ones."""
