@@ -4,7 +4,7 @@
 # cannot eat the lease: `heartctl bench model` on the paper-size model (sparse GAT kernel, bf16) with
 # torch.profiler's top kernels; the CUDA tests; PyG's GATConv kernel; then, where .gpu/store.zarr
 # exists, `heartctl train --no-ray --device cuda` on it, eager and with --compile (the real loop's
-# graphs/s); then fp32, a training batch of 512, and bench model through torch.compile (~5 min on an H200
+# graphs/s); then fp32, a training batch of 512, and bench model through torch.compile (~8 min on an H200
 # in all).
 # Output goes to stdout and, where $OUT is set, to $OUT/gpu_check.log.
 # DEVICE=cpu runs the same steps on a CPU (to check the script itself).
