@@ -288,7 +288,7 @@ def test_single_cases_go_through_one_prepared_runner_per_mesh(store, tmp_path):
     first = next(iter(pred._runners.values()))[1]
     pred.predict_many(items, 1)
     assert next(iter(pred._runners.values()))[1] is first  # reused, not rebuilt
-    pred._single(*items[0][:2], pred._runners, keep=1)
+    pred._single(*items[0][:2], keep=1)
     assert list(pred._runners) == [id(items[0][0])]  # the oldest dropped beyond `keep`
     assert pred.time_ms_per_case(items, 1) > 0 and pred.time_ms_per_case(items, 4) > 0
 

@@ -197,7 +197,7 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         model.eval()
         big = Batch.from_data_list(cases).to(dev)
         profiles["profile_inference"] = _profile(lambda: infer(big), dev)
-    return {**profiles,"device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+    return {**profiles, "device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
             "threads": torch.get_num_threads(), "config": config, "nodes": int(mesh.n_nodes),
             "edges": int(feat.edge_index.shape[1]), "parameters": count_parameters(model),
             "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows,

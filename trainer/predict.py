@@ -83,7 +83,7 @@ class Predictor:
         if self.kind == "pca":
             return _finite([self.pca.predict(f, p, self.norm, key) for f, p, key in items], self.run_label)
         if self._single_cases(batch_size):
-            return _finite([self._mm(self._single(f, p, self._runners)) for f, p, _ in items], self.run_label)
+            return _finite([self._mm(self._single(f, p)) for f, p, _ in items], self.run_label)
         out = []
         for i in range(0, len(items), batch_size):
             chunk = items[i:i + batch_size]
@@ -100,25 +100,22 @@ class Predictor:
         mesh only done once per mesh, and on a GPU the forward pass replayed as a CUDA graph."""
         return batch_size == 1 and self.rotations == 1 and self.kind == "gnn"
 
-    def _single(self, feat: MeshFeatures, params, runners: dict, keep: int = 8) -> torch.Tensor:
+    def _single(self, feat: MeshFeatures, params, keep: int = 8) -> torch.Tensor:
         """Normalised displacement [n, 3] of one case by its mesh's PreparedCase, made on first use and
-        kept in `runners` by the features' identity (the features kept with it, so the id stays theirs);
-        the oldest beyond `keep` is dropped when runners is this predictor's own cache."""
+        kept by the features' identity (the features kept with it, so the id stays theirs) for the
+        last `keep` meshes."""
+        from torch_geometric.data import Batch
+
         from .static import PreparedCase
 
-        key = id(feat)
-        if key in runners:
-            if isinstance(runners, OrderedDict):
-                runners.move_to_end(key)
+        key, g = id(feat), self.graph(feat, params)
+        if key in self._runners:
+            self._runners.move_to_end(key)
         else:
-            from torch_geometric.data import Batch
-
-            case = Batch.from_data_list([self.graph(feat, params)]).to(self.device)
-            runners[key] = (feat, PreparedCase(self.model, case))
-        while runners is self._runners and len(runners) > keep:
-            runners.popitem(last=False)
-        g = self.graph(feat, params)
-        return runners[key][1](g.x.to(self.device), g.params.to(self.device))
+            self._runners[key] = (feat, PreparedCase(self.model, Batch.from_data_list([g]).to(self.device)))
+        while len(self._runners) > keep:
+            self._runners.popitem(last=False)
+        return self._runners[key][1](g.x.to(self.device), g.params.to(self.device))
 
     def _batch(self, items: list):
         """The cases [(MeshFeatures, params, key)] as one batch on the device; for the sparse GAT
@@ -180,7 +177,7 @@ class Predictor:
             if self._single_cases(batch_size):  # as predict_many: a prepared runner per mesh, made untimed
                 keep = max(8, len({id(f) for f, _, _ in items}))  # (those predict_many made are reused)
                 for f, p, _ in items:
-                    self._single(f, p, self._runners, keep)
+                    self._single(f, p, keep)
                 runners = self._runners
                 inputs = [(runners[id(f)][1], g.x.to(self.device), g.params.to(self.device))
                           for f, g in ((f, self.graph(f, p)) for f, p, _ in items)]
