@@ -152,6 +152,20 @@ def test_prepared_case_not_capturable_stays_eager_and_leaves_dropout_working():
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
+def test_shifted_cat_spread_equals_one_add_per_tensor():
+    """The GPU's way (shifts spread by repeat_interleave) gives the CPU's (one add per tensor), for
+    index vectors and for edge lists [2, E]."""
+    from trainer.sparse_gat import shifted_cat
+
+    g = torch.Generator().manual_seed(3)
+    for shape in [(7,), (2, 5), (1,), (0,)]:
+        parts = [torch.randint(0, 50, shape[:-1] + (shape[-1] + k,), generator=g) for k in range(4)]
+        shifts = [0, 13, 40, 41]
+        expect = torch.cat([p + s for p, s in zip(parts, shifts)], dim=-1)
+        assert torch.equal(shifted_cat(parts, shifts, spread=True), expect)
+        assert torch.equal(shifted_cat(parts, shifts, spread=False), expect)
+
+
 def test_direct_sum_equals_the_batched_graph():
     """A batch's AttentionGraph assembled from its meshes' (two meshes, repeated, in mixed order)
     equals the one sorted from the batched edge_index, head-folded patterns included."""

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Batch, Data
 
-from .sparse_gat import AttentionGraph
+from .sparse_gat import AttentionGraph, shifted_cat
 
 NODE_KEYS = ("x", "y", "wall", "region", "response")  # one row per node (trainer.data.case_graph)
 GRAPH_KEYS = ("params", "labelled", "key")  # one row per graph
@@ -92,10 +92,8 @@ class GraphTable:
         small = host.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else host
         idx_t, n_t, ptr_t = small[:b], small[b:2 * b], small[2 * b:]
         spans = [(int(s), int(s + c)) for s, c in zip(self.node_start[idx], n)]
-        e_ptr = np.concatenate([[0], np.cumsum(self.n_edges[self.topology[idx]])])
-        edge_index = torch.empty((2, int(e_ptr[-1])), dtype=self._edge_list[0].dtype, device=dev)
-        for t, o, s, e in zip(self.topology[idx], ptr[:-1], e_ptr[:-1], e_ptr[1:]):
-            torch.add(self._edge_list[t], int(o), out=edge_index[:, s:e])  # graph i's edges, numbered from its first node
+        # graph i's edges, numbered from its first node
+        edge_index = shifted_cat([self._edge_list[t] for t in self.topology[idx]], ptr[:-1].tolist())
         out = Batch(edge_index=edge_index, **{k: torch.cat([v[s:e] for s, e in spans]) for k, v in self._nodes.items()},
                     **{k: v[idx_t] for k, v in self._graphs.items()})
         out.batch = torch.repeat_interleave(torch.arange(b, device=dev), n_t, output_size=int(ptr[-1]))

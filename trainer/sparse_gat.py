@@ -42,11 +42,28 @@ def _csr(crow: Tensor, col: Tensor, values: Tensor, size: int) -> Tensor:
         return torch.sparse_csr_tensor(crow, col, values, (size, size), check_invariants=False)
 
 
+def shifted_cat(tensors: list, shifts: list, spread: bool | None = None) -> Tensor:
+    """torch.cat(tensors, dim=-1) with tensors[k] shifted by the integer shifts[k].
+
+    spread (the default on a GPU): in a fixed number of kernels however many tensors there are —
+    one add per tensor would be thousands of launches per batch there. The shifts and lengths
+    reach the device in one copy from pinned memory, which does not wait for the work queued
+    there, and are spread along the result by repeat_interleave. On a CPU one add per tensor is
+    faster (a third of the time for 128 meshes' patterns)."""
+    if spread is None:
+        spread = tensors[0].is_cuda
+    if not spread:
+        return torch.cat([t + s for t, s in zip(tensors, shifts)], dim=-1)
+    flat = torch.cat(tensors, dim=-1)
+    host = torch.tensor([list(shifts), [t.shape[-1] for t in tensors]], dtype=flat.dtype)
+    small = host.pin_memory().to(flat.device, non_blocking=True) if flat.is_cuda else host
+    return flat + torch.repeat_interleave(small[0], small[1], output_size=flat.shape[-1])
+
+
 def _summed_row_pointers(pointers: list, offsets: list) -> Tensor:
     """CSR row pointers of a block-diagonal matrix from its blocks': each block's but its last entry,
-    shifted by the entries before it, then the last block's closing entry (taken on the device; a
-    host tensor copied to a GPU would wait for it)."""
-    return torch.cat([p[:-1] + o for p, o in zip(pointers, offsets)] + [pointers[-1][-1:] + offsets[-1]])
+    shifted by the entries before it, then the last block's closing entry."""
+    return shifted_cat([p[:-1] for p in pointers] + [pointers[-1][-1:]], list(offsets) + [offsets[-1]])
 
 
 def _crow(rows: Tensor, n_rows: int) -> Tensor:
@@ -87,8 +104,8 @@ class AttentionGraph:
         e = [p.n_edges for p in parts]
         node_off = [0, *itertools.accumulate(n)][:-1]
         edge_off = [0, *itertools.accumulate(e)][:-1]
-        src = torch.cat([p.src + o for p, o in zip(parts, node_off)])
-        dst = torch.cat([p.dst + o for p, o in zip(parts, node_off)])
+        src = shifted_cat([p.src for p in parts], node_off)
+        dst = shifted_cat([p.dst for p in parts], node_off)
         crow = _summed_row_pointers([p.crow for p in parts], edge_off)
         return cls(sum(n), src, dst, crow, _parts=(tuple(parts), node_off, edge_off))
 
@@ -112,7 +129,7 @@ class AttentionGraph:
         pats = [p.heads(h) for p in parts]
 
         def cat(name: str, offsets):
-            return torch.cat([getattr(q, name) + o * h for q, o in zip(pats, offsets)])
+            return shifted_cat([getattr(q, name) for q in pats], [o * h for o in offsets])
 
         def pointers(name: str):
             return _summed_row_pointers([getattr(q, name) for q in pats], [o * h for o in edge_off])
