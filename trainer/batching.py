@@ -86,8 +86,9 @@ class GraphTable:
         dev, b = self.device, len(idx)
         n = self.n_nodes[idx]
         ptr = np.concatenate([[0], np.cumsum(n)])
-        # the few per-graph integers reach a GPU in one asynchronous copy from pinned memory (a plain
-        # copy would wait for the steps still queued there); everything else is gathered on the device
+        # the few per-graph integers reach a GPU in asynchronous copies from pinned memory (a plain
+        # copy would wait for the steps still queued there; shifted_cat makes the other); everything
+        # else is gathered on the device
         host = torch.from_numpy(np.concatenate([idx, n, ptr]))
         small = host.pin_memory().to(dev, non_blocking=True) if dev.type == "cuda" else host
         idx_t, n_t, ptr_t = small[:b], small[b:2 * b], small[2 * b:]
