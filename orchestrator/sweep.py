@@ -210,19 +210,6 @@ def _remotes():
     return mesh_remote, chain_remote
 
 
-def _solver_digest() -> str:
-    import hashlib
-    from pathlib import Path
-
-    import solver
-
-    h = hashlib.sha256()
-    for p in sorted(Path(solver.__file__).parent.glob("*.py")):
-        h.update(p.name.encode())
-        h.update(p.read_bytes())
-    return h.hexdigest()[:12]
-
-
 def solver_version() -> str:
     try:
         from importlib.metadata import version
@@ -230,7 +217,9 @@ def solver_version() -> str:
         v = version("heartctl")
     except Exception:
         v = "unknown"
-    return f"heartctl {v} (solver sha256:{_solver_digest()})"
+    from solver.version import solver_digest
+
+    return f"heartctl {v} (solver sha256:{solver_digest()})"
 
 
 # --------------------------------------------------------------------------- the sweep

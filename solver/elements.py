@@ -64,37 +64,25 @@ def facet_dofs(dofmap: DofMap, facets: np.ndarray) -> np.ndarray:
     return np.hstack([facets, edge_dof[order[pos]].reshape(-1, 3)])
 
 
-def _tet_shape(order: int, lam: np.ndarray):
-    """Values [nbf, nq] and barycentric derivatives [nbf, 4, nq] of the tet basis at points lam [4, nq]."""
-    nq = lam.shape[1]
+def simplex_shape(order: int, lam: np.ndarray):
+    """Lagrange basis of order 1 or 2 on a triangle (lam [3, nq]) or tet (lam [4, nq]) at points given
+    by barycentric coordinates: values [nbf, nq] and derivatives by the barycentric coordinates
+    [nbf, nv, nq]. Vertices first, then the edges in TRI_EDGES / TET_EDGES order."""
+    nv, nq = lam.shape
     if order == 1:
-        return lam.copy(), np.broadcast_to(np.eye(4)[:, :, None], (4, 4, nq)).copy()
-    vals = np.zeros((10, nq))
-    dl = np.zeros((10, 4, nq))
-    for a in range(4):
+        return lam.copy(), np.broadcast_to(np.eye(nv)[:, :, None], (nv, nv, nq)).copy()
+    if order != 2:
+        raise ValueError(f"element order must be 1 or 2, got {order}")
+    edges = TET_EDGES if nv == 4 else TRI_EDGES
+    vals = np.zeros((nv + len(edges), nq))
+    dl = np.zeros((nv + len(edges), nv, nq))
+    for a in range(nv):
         vals[a] = lam[a] * (2 * lam[a] - 1)
         dl[a, a] = 4 * lam[a] - 1
-    for k, (i, j) in enumerate(TET_EDGES):
-        vals[4 + k] = 4 * lam[i] * lam[j]
-        dl[4 + k, i] = 4 * lam[j]
-        dl[4 + k, j] = 4 * lam[i]
-    return vals, dl
-
-
-def _tri_shape(order: int, lam: np.ndarray):
-    """Values [nbf, nq] and barycentric derivatives [nbf, 3, nq] of the triangle basis."""
-    nq = lam.shape[1]
-    if order == 1:
-        return lam.copy(), np.broadcast_to(np.eye(3)[:, :, None], (3, 3, nq)).copy()
-    vals = np.zeros((6, nq))
-    dl = np.zeros((6, 3, nq))
-    for a in range(3):
-        vals[a] = lam[a] * (2 * lam[a] - 1)
-        dl[a, a] = 4 * lam[a] - 1
-    for k, (i, j) in enumerate(TRI_EDGES):
-        vals[3 + k] = 4 * lam[i] * lam[j]
-        dl[3 + k, i] = 4 * lam[j]
-        dl[3 + k, j] = 4 * lam[i]
+    for k, (i, j) in enumerate(edges):
+        vals[nv + k] = 4 * lam[i] * lam[j]
+        dl[nv + k, i] = 4 * lam[j]
+        dl[nv + k, j] = 4 * lam[i]
     return vals, dl
 
 
@@ -143,7 +131,7 @@ def quadrature_barycentric(quad_degree: int) -> np.ndarray:
 def cell_quadrature(nodes: np.ndarray, tets: np.ndarray, order: int, quad_degree: int) -> CellQuadrature:
     X, W = get_quadrature(RefTet, quad_degree)
     lam = np.vstack([1 - X.sum(axis=0), X])
-    vals, dl = _tet_shape(order, lam)
+    vals, dl = simplex_shape(order, lam)
     vol, g = tet_geometry(nodes, tets)
     grads = np.einsum("alq,elI->eqaI", dl, g)
     dV = 6.0 * vol[:, None] * W[None, :]
@@ -162,6 +150,6 @@ class FacetQuadrature:
 def facet_quadrature(order: int, quad_degree: int) -> FacetQuadrature:
     X, W = get_quadrature(RefTri, quad_degree)
     lam = np.vstack([1 - X.sum(axis=0), X])
-    vals, dl = _tri_shape(order, lam)
+    vals, dl = simplex_shape(order, lam)
     dxi = np.stack([dl[:, 1] - dl[:, 0], dl[:, 2] - dl[:, 0]], axis=1)
     return FacetQuadrature(vals, dxi, W)

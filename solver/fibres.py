@@ -5,32 +5,48 @@ Sign convention: t = ∇φ/|∇φ| points endo → epi, e_l is the long axis (+z
 the wall, e_c = e_l × t is circumferential (counter-clockwise seen from the base, looking down −z).
 f = cos θ e_c + sin θ e_l is e_c rotated by θ about t, so θ > 0 tilts fibres toward the base as they
 run counter-clockwise; the paper's endo +60…+70° and epi −60…−70° form the usual opposed helices.
-s = t (sheet-normal, transmural), n = f × s."""
+s = t (sheet-normal, transmural), n = f × s.
+
+The field is discretised to the order of the displacement it drives. For P1 displacements φ is P1
+and t constant per tet. For P2 displacements φ is P2 and t is evaluated at each quadrature point:
+a per-tet t is only first-order accurate, and on the strongly curved apical wall (a coarse mesh has
+one or two tets across it) its error dominated the P2 solution's discretisation error, so that it
+did not shrink at P2's rate under refinement (`heartctl bench convergence`, docs/verification.md)."""
 from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import spsolve
 
-from .elements import tet_geometry
+from .elements import build_dofmap, cell_quadrature, facet_dofs, simplex_shape, tet_geometry
+from .linear import SparseSolver
 from .mesh import TetMesh
 
 
 def transmural_coordinate(mesh: TetMesh) -> np.ndarray:
-    """φ at the mesh nodes: −Δφ = 0 in the wall, φ = 0 on the endocardium, φ = 1 on the epicardium."""
-    vol, g = tet_geometry(mesh.nodes, mesh.tets)
-    ke = vol[:, None, None] * np.einsum("eaI,ebI->eab", g, g)
-    rows = np.repeat(mesh.tets, 4, axis=1).ravel()
-    cols = np.tile(mesh.tets, (1, 4)).ravel()
-    K = sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(mesh.n_nodes,) * 2)
-    phi = np.full(mesh.n_nodes, np.nan)
-    phi[mesh.endo_nodes()] = 0.0
-    phi[mesh.epi_nodes()] = 1.0
+    """φ at the mesh nodes: −Δφ = 0 in the wall, φ = 0 on the endocardium, φ = 1 on the epicardium
+    (P1 elements)."""
+    return np.clip(_laplace_dofs(mesh, 1)[1], 0.0, 1.0)
+
+
+def _laplace_dofs(mesh: TetMesh, order: int):
+    """(dof map, φ at its dofs) of the Laplace problem for φ with P`order` elements; the dofs of the
+    endo- and epicardial triangles (vertices, and edge midpoints for P2) carry the boundary values."""
+    dofmap = build_dofmap(mesh.nodes, mesh.tets, order)
+    quad = cell_quadrature(mesh.nodes, mesh.tets, order, max(2 * order - 2, 1))
+    ke = np.einsum("eqaI,eqbI,eq->eab", quad.grads, quad.grads, np.abs(quad.dV))
+    nb = dofmap.cell_dofs.shape[1]
+    rows = np.repeat(dofmap.cell_dofs, nb, axis=1).ravel()
+    cols = np.tile(dofmap.cell_dofs, (1, nb)).ravel()
+    K = sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(dofmap.n_dofs,) * 2)
+    phi = np.full(dofmap.n_dofs, np.nan)
+    for value, facets in ((0.0, mesh.endo), (1.0, mesh.epi)):
+        phi[np.unique(facet_dofs(dofmap, facets))] = value
     fixed = ~np.isnan(phi)
     free = ~fixed
     rhs = -K[free][:, fixed] @ phi[fixed]
-    phi[free] = spsolve(K[free][:, free].tocsc(), rhs)
-    return np.clip(phi, 0.0, 1.0)
+    with SparseSolver() as linsolve:  # PARDISO where installed: SuperLU's fill grows fast on P2 in 3D
+        phi[free] = linsolve.solve(K[free][:, free].tocsr(), rhs)
+    return dofmap, phi
 
 
 def wall_directions(mesh: TetMesh, phi: np.ndarray):
@@ -38,17 +54,23 @@ def wall_directions(mesh: TetMesh, phi: np.ndarray):
     vol, g = tet_geometry(mesh.nodes, mesh.tets)
     grad = _fill_flat_gradients(mesh.tets, np.einsum("ea,eaI->eI", phi[mesh.tets], g), np.abs(vol), mesh.n_nodes)
     t = grad / np.maximum(np.linalg.norm(grad, axis=1, keepdims=True), 1e-300)
+    el, ec = _longitudinal_circumferential(t)
+    return t, el, ec
+
+
+def _longitudinal_circumferential(t: np.ndarray):
+    """e_l (the long axis +z projected normal to t) and e_c = e_l × t, unit, for unit t [k, 3]; where
+    t lies along the axis (at the apex), x is projected instead."""
     ez = np.array([0.0, 0.0, 1.0])
     el = ez - np.outer(t @ ez, np.ones(3)) * t
     norm = np.linalg.norm(el, axis=1)
-    degenerate = norm < 1e-6  # t along the long axis (at the apex): fall back to x
+    degenerate = norm < 1e-6
     if degenerate.any():
         ex = np.array([1.0, 0.0, 0.0])
         el[degenerate] = ex - np.outer(t[degenerate] @ ex, np.ones(3)) * t[degenerate]
         norm = np.linalg.norm(el, axis=1)
     el /= norm[:, None]
-    ec = np.cross(el, t)
-    return t, el, ec
+    return el, np.cross(el, t)
 
 
 def _fill_flat_gradients(tets: np.ndarray, grad: np.ndarray, vol: np.ndarray, n_nodes: int) -> np.ndarray:
@@ -68,19 +90,47 @@ def _fill_flat_gradients(tets: np.ndarray, grad: np.ndarray, vol: np.ndarray, n_
 
 
 def fibre_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam: np.ndarray,
-                 phi: np.ndarray | None = None) -> np.ndarray:
+                 phi: np.ndarray | None = None, order: int = 1) -> np.ndarray:
     """Frames [m, nq, 3, 3] whose columns are (f, s, n), at quadrature points with barycentric
-    coordinates lam [4, nq]. Angles in degrees (CLI convention), converted to radians here."""
-    if phi is None:
-        phi = transmural_coordinate(mesh)
-    t, el, ec = wall_directions(mesh, phi)
-    phi_q = np.einsum("ea,aq->eq", phi[mesh.tets], lam)
-    theta = np.deg2rad(helix_endo_deg + phi_q * (helix_epi_deg - helix_endo_deg))
+    coordinates lam [4, nq]. Angles in degrees (CLI convention), converted to radians here.
+
+    order 1: φ P1 (`phi` at the nodes may be given), t constant per tet. order 2: φ P2, t from ∇φ
+    at each quadrature point (where ∇φ vanishes there, the tet's P1 direction)."""
+    if order == 1:
+        if phi is None:
+            phi = transmural_coordinate(mesh)
+        t, el, ec = wall_directions(mesh, phi)
+        phi_q = np.einsum("ea,aq->eq", phi[mesh.tets], lam)
+        t, el, ec = (np.broadcast_to(v[:, None, :], (len(mesh.tets), lam.shape[1], 3)) for v in (t, el, ec))
+    elif order == 2:
+        phi_q, t, el, ec = _quadratic_wall_directions(mesh, lam)
+    else:
+        raise ValueError(f"fibre field order must be 1 or 2, got {order}")
+    theta = np.deg2rad(helix_endo_deg + np.clip(phi_q, 0.0, 1.0) * (helix_epi_deg - helix_endo_deg))
     c, s = np.cos(theta)[..., None], np.sin(theta)[..., None]
-    f = c * ec[:, None, :] + s * el[:, None, :]
-    sheet = np.broadcast_to(t[:, None, :], f.shape)
+    f = c * ec + s * el
+    sheet = np.broadcast_to(t, f.shape)
     n = np.cross(f, sheet)
     return np.stack([f, sheet, n], axis=-1)
+
+
+def _quadratic_wall_directions(mesh: TetMesh, lam: np.ndarray):
+    """φ [m, nq] and unit t, e_l, e_c [m, nq, 3] at the points lam [4, nq] of every tet, from P2 φ."""
+    dofmap, phi = _laplace_dofs(mesh, 2)
+    vals, dl = simplex_shape(2, lam)
+    _, g = tet_geometry(mesh.nodes, mesh.tets)
+    local = phi[dofmap.cell_dofs]  # [m, 10]
+    phi_q = local @ vals
+    grad = np.einsum("ea,alq,elI->eqI", local, dl, g)
+    size = np.linalg.norm(grad, axis=2)
+    flat = size <= 1e-8 * max(float(np.median(size)), 1e-300)
+    if flat.any():  # a point where ∇φ vanishes (a tet hugging one surface): the tet's P1 direction
+        p1 = transmural_coordinate(mesh)
+        t1, _, _ = wall_directions(mesh, p1)
+        grad[flat] = np.broadcast_to(t1[:, None, :], grad.shape)[flat]
+    t = grad / np.linalg.norm(grad, axis=2, keepdims=True)
+    el, ec = _longitudinal_circumferential(t.reshape(-1, 3))
+    return phi_q, t, el.reshape(t.shape), ec.reshape(t.shape)
 
 
 def uniform_frames(n_cells: int, n_quad: int, fibre=(1.0, 0.0, 0.0), sheet=(0.0, 1.0, 0.0)) -> np.ndarray:
@@ -333,10 +383,12 @@ def heartfem_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, 
     return frames.reshape(len(mesh.tets), lam.shape[1], 3, 3)
 
 
-def rule_frames(rule: str, mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam: np.ndarray) -> np.ndarray:
-    """Frames by the named rule: "laplace" (ours, default) or "heartfem" (the original dataset's)."""
+def rule_frames(rule: str, mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam: np.ndarray,
+                order: int = 1) -> np.ndarray:
+    """Frames by the named rule: "laplace" (ours, default; φ of element order `order`) or "heartfem"
+    (the original dataset's, built at each point from surface distances: no element order)."""
     if rule == "laplace":
-        return fibre_frames(mesh, helix_endo_deg, helix_epi_deg, lam)
+        return fibre_frames(mesh, helix_endo_deg, helix_epi_deg, lam, order=order)
     if rule == "heartfem":
         return heartfem_frames(mesh, helix_endo_deg, helix_epi_deg, lam)
     raise ValueError(f"unknown fibre rule {rule!r}; choose {' or '.join(FIBRE_RULES)}")
