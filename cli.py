@@ -26,6 +26,7 @@ class Units(str, Enum):
 class FidelityName(str, Enum):
     fast = "fast"
     accurate = "accurate"
+    reference = "reference"  # accurate on the once-refined mesh, answered at the mesh's own nodes
 
 
 class Direction(str, Enum):
@@ -102,7 +103,7 @@ PressureOpt = typer.Option(..., "--pressure", help="ED cavity pressure, mmHg (> 
 StiffnessOpt = typer.Option(..., "--stiffness", help="Guccione stiffness C, Pa (> 0).")
 EndoOpt = typer.Option(60.0, "--endo", help="Endocardial helix angle, degrees (|θ| ≤ 90).")
 EpiOpt = typer.Option(-60.0, "--epi", help="Epicardial helix angle, degrees (the paper's −60…−70).")
-FidelityOpt = typer.Option(FidelityName.accurate, "--fidelity", help="Solver preset.")
+FidelityOpt = typer.Option(FidelityName.accurate, "--fidelity", help="Solver preset: fast (P1/P1) | accurate (P2/P1) | reference (accurate on the mesh refined once, answered at its nodes: near the converged solution, ~10–20× accurate's time).")
 BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed), clamped, spring (sliding + epicardial normal spring), or heartfem (spring, rigid motions removed over the wall about the coordinate origin: the original paper's pipeline; mesh placement matters).")
 FibresOpt = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (ours) | heartfem (the original pipeline's distance rule).")
 UnitsOpt = typer.Option(Units.mm, "--units", help="Length unit of the input mesh; the output uses it too.")
@@ -285,6 +286,9 @@ def verify(problem: Problem = typer.Option(Problem.all, "--problem", help="Land 
     """Run the Land et al. (2015) verification problems and compare with the published values."""
     from solver.benchmarks import land1, land2
 
+    if fidelity is FidelityName.reference:
+        fail("verify solves the Land et al. problems on their own meshes; choose --fidelity fast or accurate "
+             "(bench convergence measures refinement)")
     names = ["land1", "land2"] if problem is Problem.all else [problem.value]
     for name in names:
         result = (land1 if name == "land1" else land2)(fidelity.value)
@@ -720,8 +724,10 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
              plots: bool = typer.Option(True, "--plots/--no-plots", help="PNG plots (needs matplotlib)."),
              rotations: int = typer.Option(1, "--rotations", help="Average the network over K turns about the long "
                                                                   "axis (K× the time; best with runs trained with --rotate-deg 180)."),
+             reference: str = typer.Option(None, "--reference", help="A store of the same ED meshes at converged fidelity (heartctl generate --fidelity reference, same --seed and --nodes): the cases it has are scored against it too, the network's answers and the store's own labels."),
              as_json: bool = typer.Option(False, "--json", help='One JSON object: {"dsc_1mm": …, "hd_mm": …, "cases": N}.')):
-    """Metrics of a trained run on its store: DSC@1 mm / 0.1 mm, HD, MD, SD (mm, mean ± SD), time per case."""
+    """Metrics of a trained run on its store: DSC@1 mm / 0.1 mm, HD, MD, SD (mm, mean ± SD), time per case;
+    against the store's own labels and, with --reference, against the converged solution."""
     from trainer.evaluate import evaluate_run
 
     try:
@@ -732,7 +738,8 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
 
             if not torch.cuda.is_available():
                 raise ValueError("--device cuda: no CUDA device is available here")
-        report = evaluate_run(run[0], store, split, device, out, plots, rotations=rotations, members=run[1:])
+        report = evaluate_run(run[0], store, split, device, out, plots, rotations=rotations, members=run[1:],
+                              reference=reference)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
@@ -740,22 +747,31 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
                                "ms_per_case_batched": report["ms_per_case_batched"],
                                "response_ms_per_mesh": report["response_ms_per_mesh"], "split": split,
                                "config": report["config"], "rotations": report["rotations"],
-                               "members": report["members"]}))
+                               "members": report["members"], "labels_fidelity": report["labels_fidelity"],
+                               **({"reference": report["reference"]} if "reference" in report else {})}))
         return
     from rich.console import Console
     from rich.table import Table
 
     agg = report["aggregate"]
+    ref = report.get("reference")
     table = Table(title=f"{report['config']} on {report['summary']['cases']} {split} cases of {store}")
     table.add_column("metric")
-    table.add_column("mean ± SD over cases", justify="right")
+    table.add_column(f"vs its labels ({report['labels_fidelity']}), mean ± SD", justify="right")
     table.add_column("cm", justify="right")
+    if ref:
+        table.add_column(f"vs converged ({ref['fidelity']}, {ref['cases']} cases)", justify="right")
+        table.add_column(f"labels vs converged", justify="right")
     for key, name, cm in (("dsc_1mm", "DSC @ 1 mm", False), ("dsc_01mm", "DSC @ 0.1 mm", False),
                           ("hd_mm", "HD (mm)", True), ("md_mm", "MD (mm)", True), ("sd_mm", "SD (mm)", True),
                           ("nn_md_mm", "MD, nearest node (mm)", True), ("max_mm", "max node error (mm)", True)):
         m, s = agg[key]
-        table.add_row(name, f"{m:.4f} ± {s:.4f}", f"{m / 10:.4f}" if cm else "")
-    con = Console(width=160)
+        cells = [name, f"{m:.4f} ± {s:.4f}", f"{m / 10:.4f}" if cm else ""]
+        if ref:
+            cells += [f"{ref[who][key][0]:.4f} ± {ref[who][key][1]:.4f}" if key in ref[who] else ""
+                      for who in ("network", "labels")]
+        table.add_row(*cells)
+    con = Console(width=200)
     con.print(table)
     con.print(f"inference: {report['summary']['ms_per_case']:.2f} ms per case at batch 1, "
               f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})"
@@ -1036,7 +1052,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              stiffness: str = typer.Option(None, "--stiffness", help="Stiffness C, Pa, comma-separated (default 50,100,…,300)."),
              endo: str = typer.Option(None, "--endo", help="Endocardial helix angles, degrees (default 60,65,70)."),
              epi: str = typer.Option(None, "--epi", help="Epicardial helix angles, degrees (default −60,−65,−70; write --epi=-60,-65)."),
-             fidelity: str = typer.Option(None, "--fidelity", help="Solver preset: fast | accurate (default accurate)."),
+             fidelity: str = typer.Option(None, "--fidelity", help="Solver preset: fast | accurate (default) | reference (accurate on each mesh refined once: pairs near the converged solution, for evaluate --reference)."),
              base: str = typer.Option(None, "--base", help="Base condition: sliding (default) | clamped | spring | heartfem."),
              fibres: str = typer.Option(None, "--fibres", help="Fibre rule: laplace (default) | heartfem (the original pipeline's)."),
              seed: int = typer.Option(None, "--seed", help="Shape-model seed (default 0)."),

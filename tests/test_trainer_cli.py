@@ -606,3 +606,34 @@ def test_train_help_names_every_configuration():
 
     named = set(re.findall(r"[A-Za-z][\w-]*", CONFIG_HELP.split("(README")[0].removeprefix("Model:")))
     assert set(NAMED_CONFIGS) <= named and named - set(NAMED_CONFIGS) <= {"our", "best"}
+
+
+def test_evaluate_against_a_reference_store(trained, tmp_path):
+    """--reference scores the network and the store's own labels against a store of the same ED meshes
+    (here: the labels moved 0.3 mm, at one of the grid's parameter sets); other meshes or no shared
+    case are one line, exit 2."""
+    reference = make_tiny_store(tmp_path / "ref.zarr", shapes=4, pressures=(8.0,), stiffness=(100.0,),
+                                attrs={"fidelity": "reference"}, shift_mm=0.3)
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference", reference,
+            "--no-plots", "--json", "--out", tmp_path / "eval")
+    assert r.exit_code == 0, r.output
+    out = json.loads(r.output.strip().splitlines()[-1])
+    ref = out["reference"]
+    assert ref["fidelity"] == "reference" and ref["labels_fidelity"] == "fast"
+    test_shapes = {k[0] for k in load_run(trained["run"])["split"]["test"]}
+    assert ref["cases"] == len(test_shapes)  # one parameter set (8 mmHg, 100 Pa) per test shape
+    assert ref["labels"]["md_mm"][0] == pytest.approx(0.3, abs=1e-5)  # stored in float32
+    assert ref["labels"]["max_mm"][0] == pytest.approx(0.3, abs=1e-5)
+    assert np.isfinite(ref["network"]["md_mm"][0]) and ref["network"]["md_mm"][0] > 0
+    rows = (tmp_path / "eval" / "cases.csv").read_text().splitlines()
+    assert "ref_md_mm" in rows[0] and "label_ref_md_mm" in rows[0]
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference", reference,
+            "--no-plots", "--out", tmp_path / "eval2")
+    assert r.exit_code == 0 and "vs converged (reference" in r.output, r.output
+    other_meshes = make_tiny_store(tmp_path / "seed1.zarr", shapes=4, seed=1, pressures=(8.0,), stiffness=(100.0,))
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
+                         other_meshes, "--no-plots", "--out", tmp_path / "e3"), "another ED mesh")
+    other_grid = make_tiny_store(tmp_path / "p5.zarr", shapes=4, pressures=(5.0,), stiffness=(100.0,))
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
+                         other_grid, "--no-plots", "--out", tmp_path / "e4"), "none of the")
+    assert not (tmp_path / "e3").exists() and not (tmp_path / "e4").exists()

@@ -55,8 +55,9 @@ def synthetic_unloaded(nodes: np.ndarray, pressure_mmhg: float, stiffness_pa: fl
 
 
 def make_tiny_store(path, shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0), stiffness=(100.0, 200.0),
-                    attrs: dict | None = None) -> str:
-    """Write a store with every case done; returns its location."""
+                    attrs: dict | None = None, shift_mm: float = 0.0) -> str:
+    """Write a store with every case done (unloaded geometries moved by shift_mm along x); returns its
+    location."""
     from storage.store import DONE, PairStore, stats_row
 
     spec = tiny_spec(shapes, seed, pressures, stiffness)
@@ -66,7 +67,7 @@ def make_tiny_store(path, shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0),
         m = lv_mesh(s, seed)
         store.write_shape(s, m.nodes, m.tets, m.endo, m.epi, m.base, np.zeros(3), {})
         for k, (p, c, _, _) in enumerate(params):
-            unloaded = synthetic_unloaded(m.nodes, p, c)
+            unloaded = synthetic_unloaded(m.nodes, p, c) + [shift_mm, 0.0, 0.0]
             stats = {"min_jacobian": 0.9, "roundtrip_error_mm": 1e-6, "final_residual": 1e-9}
             reason = store.write_pair(s, k, unloaded, m.nodes, stats)
             assert reason is None, reason

@@ -16,6 +16,7 @@ from .data import MeshFeatures, check_fingerprint, read_store, store_fingerprint
 from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
 from .predict import Ensemble, Predictor
+from .reference import match_reference, reference_rows, reference_summary
 
 SPLITS = ("test", "val", "train", "all")
 
@@ -44,11 +45,14 @@ def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations
 
 
 def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_dir=None, plots: bool = True,
-                 batch_size: int = 32, timing_cases: int = 50, rotations: int = 1, members=()) -> dict:
+                 batch_size: int = 32, timing_cases: int = 50, rotations: int = 1, members=(),
+                 reference=None) -> dict:
     """Predict every case of the split and compare with the FE unloaded geometry (mm); `rotations`:
     test-time averaging over turns about the long axis (Predictor); `members`: more run directories
     whose networks are averaged with run_dir's (Ensemble). They must have been trained on the same
-    store with the same split, so that the split's cases are unseen by every member."""
+    store with the same split, so that the split's cases are unseen by every member. `reference`: a
+    store of the same ED meshes at converged fidelity; the cases it has are also scored against it,
+    the network's answer and the store's own labels (trainer.reference)."""
     run_dir = Path(run_dir)
     state = load_run(run_dir)
     keys = _keys_for(state, split)
@@ -67,6 +71,10 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
         keys = cases.keys
         if not keys:
             raise TrainerError(f"store {store} has no done cases")
+    ref_cases = matches = None
+    if reference is not None:
+        ref_cases = read_store(reference)
+        matches = match_reference(cases, keys, ref_cases, str(reference))
     # the folder is made once store and run are known to match (no empty folder after a refusal), and
     # checked before the minutes of predicting
     out_dir = _writable_folder(Path(out_dir) if out_dir else run_dir / default)
@@ -83,6 +91,12 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
         errors.append(nodewise_error(guess, true))
         rows.append({"shape_id": k[0], "case": k[1], **dict(zip(PARAM_NAMES, map(float, params))),
                      "nodes": int(feat.ed_mm.shape[0]), **m})
+    if matches is not None:
+        guesses = {k: cases.ed(k) + d for k, d in zip(keys, disps)}
+        ref_rows = reference_rows(guesses, cases, ref_cases, matches)
+        nan_row = dict.fromkeys(next(iter(ref_rows.values())), float("nan"))
+        for r in rows:
+            r.update(ref_rows.get((r["shape_id"], r["case"]), nan_row))
     agg = aggregate(rows)
     summary = {"dsc_1mm": agg["dsc_1mm"][0], "dsc_01mm": agg["dsc_01mm"][0], "hd_mm": agg["hd_mm"][0],
                "md_mm": agg["md_mm"][0], "sd_mm": agg["sd_mm"][0], "ms_per_case": single_ms, "cases": len(rows)}
@@ -91,7 +105,10 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "split": split, "rotations": pred.rotations, "members": len(pred.members),
               "config": " + ".join(m.cfg.config_name for m in pred.members), "kind": pred.kind,
               "device": str(pred.device),
-              "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS}}
+              "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS},
+              "labels_fidelity": cases.attrs.get("fidelity")}
+    if matches is not None:
+        extras["reference"] = reference_summary(ref_rows, reference, ref_cases, cases.attrs.get("fidelity"))
     by_param = _by_parameter(rows)
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
 

@@ -1,0 +1,141 @@
+"""Uniform refinement, the fibre field's order, convergence under refinement, the reference preset
+and the Richardson arithmetic of `heartctl bench convergence`."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from solver.convergence import (CASES, ConvergenceSpec, Hierarchy, convergence_shape, markdown_report, nodal_error,
+                                observed_order, parse_hierarchies, richardson_error, run_convergence, unload_at_level)
+from solver.elements import quadrature_barycentric
+from solver.fibres import fibre_frames
+from solver.lv import forward_solve, inverse_solve, make_pair
+from solver.mesh import boundary_facets, scaled_jacobian, signed_tet_volumes
+from solver.meshing import mesh_lv, mesh_truncated_ellipsoid
+from solver.refine import prolongate, refine_uniform
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return mesh_lv(convergence_shape("mean"), 80)
+
+
+@pytest.fixture(scope="module")
+def one_level():
+    """bench convergence on the tiny mesh refined once, both presets (accurate's refined answer is
+    the reference)."""
+    return run_convergence(ConvergenceSpec(("mean",), ("mid",), (Hierarchy(80, 1),)))
+
+
+def _area(nodes, tris):
+    p = nodes[tris]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+
+
+def test_refinement_keeps_the_vertices_the_domain_and_the_surfaces(tiny):
+    fine = refine_uniform(tiny, 2)
+    assert np.array_equal(fine.nodes[: tiny.n_nodes], tiny.nodes)
+    assert len(fine.tets) == 64 * len(tiny.tets)
+    vol = signed_tet_volumes(fine.nodes, fine.tets)
+    assert vol.min() > 0
+    assert vol.sum() == pytest.approx(signed_tet_volumes(tiny.nodes, tiny.tets).sum(), rel=1e-12)
+    # red refinement along the shortest diagonal keeps the elements' quality bounded
+    assert scaled_jacobian(fine.nodes, fine.tets).min() > 0.5 * scaled_jacobian(tiny.nodes, tiny.tets).min()
+    for name in ("endo", "epi", "base"):
+        coarse_tris, fine_tris = getattr(tiny, name), getattr(fine, name)
+        assert len(fine_tris) == 16 * len(coarse_tris)
+        assert _area(fine.nodes, fine_tris) == pytest.approx(_area(tiny.nodes, coarse_tris), rel=1e-12)
+    assert len(boundary_facets(fine.tets)) == len(fine.endo) + len(fine.epi) + len(fine.base)
+    with pytest.raises(ValueError, match="levels"):
+        refine_uniform(tiny, -1)
+
+
+def test_prolongation_reproduces_linear_fields(tiny):
+    fine = refine_uniform(tiny, 2)
+    assert np.allclose(prolongate(tiny.nodes, tiny, 2), fine.nodes, atol=1e-12)
+    field = tiny.nodes @ np.array([0.3, -1.2, 2.0]) + 5.0
+    assert np.allclose(prolongate(field, tiny, 2), fine.nodes @ np.array([0.3, -1.2, 2.0]) + 5.0)
+
+
+def test_p2_fibres_follow_the_wall_an_order_better_than_p1():
+    """On a hemispherical shell (base through the centre) the transmural direction is radial. The
+    P2 field's t at the quadrature points is much closer to it than the P1 field's per-tet t, and its
+    error shrinks faster under refinement (what the accurate preset's apex needed)."""
+    shell = mesh_truncated_ellipsoid((20.0, 20.0, 20.0), (30.0, 30.0, 30.0), 0.0, 0.0, 300)
+    lam = quadrature_barycentric(2)
+    errors = {}
+    for level in (0, 1):
+        m = refine_uniform(shell, level)
+        x = np.einsum("eai,aq->eqi", m.nodes[m.tets], lam)
+        radial = x / np.linalg.norm(x, axis=2, keepdims=True)
+        for order in (1, 2):
+            t = fibre_frames(m, 60.0, -60.0, lam, order=order)[..., 1]
+            errors[order, level] = np.degrees(np.arccos(np.clip((t * radial).sum(axis=2), -1, 1))).mean()
+    assert errors[2, 0] < 0.7 * errors[1, 0]  # 2.9° against 5.1° on 276 nodes
+    assert errors[2, 1] < 0.6 * errors[1, 1]  # 1.3° against 3.8° on 1,635
+    assert errors[2, 0] / errors[2, 1] > errors[1, 0] / errors[1, 1]
+
+
+def test_unloading_converges_under_refinement_at_the_expected_rate(tiny, one_level):
+    """fast (P1/P1) on a tiny LV and its two refinements: the nodal differences of consecutive levels
+    shrink at an observed order of 1–2.5 (P1: 2 for a smooth solution; the apical fibre vortex and
+    the faceted wall lower it), and accurate (P2/P1) is closer to the finest level than fast on the
+    same mesh."""
+    fast, accurate = (next(o for o in one_level["orders"] if o["preset"] == p) for p in ("fast", "accurate"))
+    assert accurate["level_diffs_mean_mm"][0] < 0.5 * fast["level_diffs_mean_mm"][0]
+    levels = [unload_at_level(tiny, CASES["mid"], "fast", level) for level in (0, 1, 2)]
+    diffs = [nodal_error(a.unloaded, b.unloaded, tiny.nodes)["mean_mm"] for a, b in zip(levels[:-1], levels[1:])]
+    order = observed_order(*diffs)
+    assert 1.0 <= order <= 2.5, diffs
+
+
+def test_observed_order_and_richardson_on_a_known_sequence():
+    # u_h = u* + c h²: differences 0.75 c h0², 0.1875 c h0² → p = 2, finest error c (h0/4)² = d_top / 3
+    d01, d12 = 0.75, 0.1875
+    assert observed_order(d01, d12) == pytest.approx(2.0)
+    assert richardson_error(d12, 2.0) == pytest.approx(0.0625)
+    assert np.isnan(observed_order(0.0, 0.1)) and np.isnan(richardson_error(0.1, -0.5))
+
+
+def test_nodal_error_regions():
+    nodes = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -5.0], [0.0, 0.0, -10.0]])
+    err = nodal_error(nodes + [[0.1, 0, 0], [0.2, 0, 0], [0.4, 0, 0]], nodes, nodes)
+    assert err["max_mm"] == pytest.approx(0.4) and err["mean_mm"] == pytest.approx(0.7 / 3)
+    assert err["apex_mean_mm"] == pytest.approx(0.4) and err["base_mean_mm"] == pytest.approx(0.1)
+
+
+def test_mesh_hierarchies_parse_and_bad_ones_are_refused():
+    assert parse_hierarchies("150:2,800:1") == (Hierarchy(150, 2), Hierarchy(800, 1))
+    for text in ("150", "a:1", "150:2:1"):
+        with pytest.raises(ValueError, match="NODES:LEVELS"):
+            parse_hierarchies(text)
+    with pytest.raises(ValueError, match="refinement level"):
+        ConvergenceSpec(hierarchies=(Hierarchy(150, 0),)).validate()
+    with pytest.raises(ValueError, match="unknown case"):
+        ConvergenceSpec(cases=("easy",)).validate()
+    with pytest.raises(ValueError, match="unknown convergence shape"):
+        ConvergenceSpec(shapes=("round",)).validate()
+
+
+def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny):
+    params = CASES["mid"]
+    pair = make_pair(tiny, params, "reference")
+    direct = inverse_solve(refine_uniform(tiny, 1), params, "accurate")
+    assert pair.unloaded_nodes.shape == tiny.nodes.shape
+    assert np.abs(pair.unloaded_nodes - direct.unloaded_nodes[: tiny.n_nodes]).max() < 1e-3
+    assert np.linalg.norm(pair.loaded_nodes - tiny.nodes, axis=1).max() < 1e-3
+    # and it differs from accurate on the mesh as given by that mesh's discretisation error
+    coarse = inverse_solve(tiny, params, "accurate")
+    assert nodal_error(coarse.unloaded_nodes, pair.unloaded_nodes, tiny.nodes)["mean_mm"] > 0.01
+    fwd = forward_solve(tiny.with_nodes(pair.unloaded_nodes), params, "reference")
+    assert fwd.loaded_nodes.shape == tiny.nodes.shape
+    inv = inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes)
+    assert np.abs(inv.unloaded_nodes - pair.unloaded_nodes).max() < 1e-3
+    with pytest.raises(ValueError, match="one point per ED node"):
+        inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes[:-1])
+
+
+def test_the_report_names_its_reference(one_level):
+    text = markdown_report(one_level, "# title")
+    assert "Reference: `accurate` on the hierarchy's finest mesh" in text
+    assert "| mean | mid | 80-node | accurate | 1 |" in text and "† | reference |" in text
