@@ -1064,6 +1064,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
              dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cases, core-hours from a calibration solve) and exit."),
              retry_failed: bool = typer.Option(False, "--retry-failed", help="Also rerun cases recorded as failed."),
+             retry_damaged: bool = typer.Option(False, "--retry-damaged", help="First read every done case back; recompute those whose stored chunks are damaged (checksum mismatch)."),
              max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × the cluster's CPUs, re-read as nodes join); a task is one pressure chain."),
              warm_start: bool = typer.Option(True, "--warm-start/--no-warm-start", help="Start each inverse from the unloaded geometry of its chain's lower pressures (default) or from the ED mesh."),
              as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
@@ -1142,7 +1143,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
 
     try:
         report = run_sweep(spec, store, max_in_flight=max_in_flight, retry_failed=retry_failed,
-                           progress=not as_json, warm_start=warm_start)
+                           progress=not as_json, warm_start=warm_start, retry_damaged=retry_damaged)
     except _store_errors() as exc:
         ray.shutdown()
         fail(str(exc))
@@ -1154,6 +1155,10 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         typer.echo(json_line(report.as_dict()))
         return
     rate = report.throughput
+    if retry_damaged:
+        typer.echo(f"{len(report.damaged_reset)} damaged case(s) recomputed"
+                   + (": " + ", ".join(f"shape {a} case {b}" for a, b in report.damaged_reset[:10]) if report.damaged_reset else "")
+                   + (" …" if len(report.damaged_reset) > 10 else ""))
     typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_now} failed "
                f"of {report.total} ({report.done} done and {report.failed} failed in this run, "
                f"{report.submitted} submitted); meshing {report.phase1_s:.1f} s, pairs {report.phase2_s:.1f} s "
@@ -1209,19 +1214,24 @@ def _fmt_s(x) -> str:
 
 @app.command()
 def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL."),
+           verify: bool = typer.Option(False, "--verify", help="Also read every done case and list those whose stored chunks are damaged (exit 1 if any)."),
            as_json: bool = typer.Option(False, "--json", help='One JSON object: {"done": N, "failed": N, "pending": N, …}.')):
     """Progress of a store: counts by status, failure reasons, throughput, per-phase times, ETA."""
-    from storage.store import StoreError, inspect_store, is_url, reading_store, summarize
+    from storage.store import PairReader, StoreError, inspect_store, is_url, reading_store, summarize
 
     try:
         with reading_store(store):
             if inspect_store(store) is None:
                 raise StoreError(f"no heartctl store at {store}")
             s = summarize(store)
+            if verify:
+                s["damaged"] = [{"shape": a, "case": b, "reason": r} for a, b, r in PairReader(store).damaged()]
     except _store_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json_line(s))
+        if s.get("damaged"):
+            raise typer.Exit(1)
         return
     from rich.console import Console
     from rich.table import Table
@@ -1263,6 +1273,15 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
         con.print(f"shapes that did not mesh: {s['mesh_failures']}")
     if s["hosts"]:
         con.print("done by host: " + ", ".join(f"{h} {n}" for h, n in sorted(s["hosts"].items())))
+    if verify:
+        if not s["damaged"]:
+            con.print(f"verified: all {s['done']} done cases read back intact (checksums match)")
+            return
+        for d in s["damaged"]:
+            typer.echo(f"damaged: shape {d['shape']} case {d['case']}: {d['reason']}")
+        typer.echo(f"{len(s['damaged'])} of {s['done']} done cases are damaged; "
+                   f"`heartctl generate --store {store} --retry-damaged` recomputes them")
+        raise typer.Exit(1)
 
 
 @app.command()

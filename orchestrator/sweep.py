@@ -48,6 +48,7 @@ class SweepReport:
     mesh_failures: int = 0
     lost: int = 0  # cases of tasks lost to the infrastructure (worker or node died after retries): left pending
     retried_failed: int = 0  # of failed_before, the cases --retry-failed submitted again
+    damaged_reset: list = field(default_factory=list)  # (shape, case) found damaged and recomputed (--retry-damaged)
     phase1_s: float = 0.0
     phase2_s: float = 0.0
     wall_s: float = 0.0
@@ -265,14 +266,16 @@ def _remove_if_only_lock(folder) -> None:
 
 def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = None, retry_failed: bool = False,
               progress: bool = True, on_event=None, console=None, warm_start: bool = True,
-              chain_length: int = MAX_CHAIN) -> SweepReport:
+              chain_length: int = MAX_CHAIN, retry_damaged: bool = False) -> SweepReport:
     """Run (or resume) the sweep into the store at `location`. Ray must be initialised
     (see init_ray). `on_event(dict)` is called after every recorded case (tests use it).
 
     Each task solves one pressure chain (`grid.pressure_chains`: the cases of a shape that differ only
     in pressure); with `warm_start` each inverse in it starts from the unloaded geometry extrapolated
     from the chain's lower pressures; `chain_length` 1 makes every pair its own task.
-    `max_in_flight` counts tasks (default: InFlightLimit, twice the cluster's CPUs as nodes join)."""
+    `max_in_flight` counts tasks (default: InFlightLimit, twice the cluster's CPUs as nodes join).
+    `retry_damaged`: first read every done case back and mark those whose chunks are damaged
+    (checksum mismatch) pending, so that they are recomputed."""
     import ray
 
     if not ray.is_initialized():
@@ -280,8 +283,11 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     t_start = time.perf_counter()
     store, lock = open_or_create(spec, location)
     try:
-        return _run(spec, store, max_in_flight, retry_failed, progress, on_event, console, warm_start, chain_length,
-                    t_start)
+        damaged = store.reset_damaged([s for s in range(spec.shapes) if store.shape_ready(s)]) if retry_damaged else []
+        report = _run(spec, store, max_in_flight, retry_failed, progress, on_event, console, warm_start, chain_length,
+                      t_start)
+        report.damaged_reset = [(s, k) for s, k, _ in damaged]
+        return report
     finally:
         lock.release()
 

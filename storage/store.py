@@ -65,18 +65,26 @@ class StoreError(ValueError):
 
 @contextmanager
 def reading_store(location, keep: tuple = ()):
-    """Errors from zarr, numcodecs or the filesystem while a store is read (a damaged chunk raises
-    RuntimeError from its decompressor) as one-line StoreErrors, which the CLI reports with exit 2
-    and Ray Train workers refuse at once instead of retrying. StoreErrors, the exception types in
-    `keep` and programming errors (TypeError, AttributeError, NameError) pass unchanged."""
+    """Errors from zarr, numcodecs or the filesystem while a store is read (a damaged chunk fails its
+    CRC-32C, or raises RuntimeError from its decompressor) as one-line StoreErrors, which the CLI
+    reports with exit 2 and Ray Train workers refuse at once instead of retrying. StoreErrors, the
+    exception types in `keep` and programming errors (TypeError, AttributeError, NameError) pass
+    unchanged, except a checksum mismatch (a ValueError in zarr), which is always damage."""
     try:
         yield
-    except (StoreError, TypeError, AttributeError, NameError, *keep):
-        raise
     except Exception as exc:
+        if _is_checksum_error(exc):
+            raise StoreError(f"cannot read store {location}: a stored chunk is damaged (its checksum does not "
+                             f"match)") from None
+        if isinstance(exc, (StoreError, TypeError, AttributeError, NameError, *keep)):
+            raise
         reason = f"missing {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args else \
             (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         raise StoreError(f"cannot read store {location}: {reason}") from None
+
+
+def _is_checksum_error(exc: Exception) -> bool:
+    return type(exc) is ValueError and "checksum do not match" in str(exc)
 
 
 # --------------------------------------------------------------------------- opening
@@ -174,10 +182,46 @@ def _jsonable(value):
     return value
 
 
-def _compressor():
-    from zarr.codecs import BloscCodec
+def _damage(exc: Exception) -> str:
+    """A chunk read error in words: a checksum mismatch, or the error's first line."""
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    return "its checksum does not match (changed bytes)" if _is_checksum_error(exc) else f"it does not read ({text[:100]})"
 
-    return BloscCodec(cname="zstd", clevel=5, shuffle="shuffle")
+
+RECOMPUTE_HINT = "`heartctl status --verify` lists the damaged cases, `heartctl generate --retry-damaged` recomputes them"
+
+
+def read_case_chunks(group, shape_id: int, k: int, location: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """(unloaded, loaded) of case k from a shape's group; StoreError naming the store and the case
+    when a chunk is damaged (checksum mismatch, or it does not decompress)."""
+    try:
+        return group["unloaded"][k], group["loaded"][k]
+    except (TypeError, AttributeError, NameError):
+        raise
+    except Exception as exc:
+        where = f"store {location}: " if location else ""
+        raise StoreError(f"{where}shape {shape_id} case {k} is damaged: {_damage(exc)}; {RECOMPUTE_HINT}") from None
+
+
+def damaged_cases(group_of, shape_ids, status_of) -> list[tuple[int, int, str]]:
+    """(shape, case, reason) of every done case whose chunks do not read back intact."""
+    out = []
+    for s in shape_ids:
+        g = group_of(s)
+        for k in np.flatnonzero(status_of(s) == DONE):
+            try:
+                read_case_chunks(g, s, int(k))
+            except StoreError as exc:
+                out.append((s, int(k), str(exc).split(" is damaged: ", 1)[1].split("; ")[0]))
+    return out
+
+
+def _codecs() -> tuple:
+    """Every chunk is compressed, then carries a CRC-32C of its bytes, checked on every read: a damaged
+    chunk fails to read (one line, by reading_store) instead of returning wrong geometry."""
+    from zarr.codecs import BloscCodec, Crc32cCodec
+
+    return BloscCodec(cname="zstd", clevel=5, shuffle="shuffle"), Crc32cCodec()
 
 
 def remove_partial_files(location) -> int:
@@ -321,15 +365,15 @@ class PairStore:
             del shapes[key]  # a shape group left unfinished by a killed driver
         n, K = int(np.asarray(nodes).shape[0]), self.n_cases
         g = shapes.create_group(key)
-        comp = _compressor()
+        comp = _codecs()
         g.create_array("ed_reference", data=np.asarray(nodes, dtype=np.float64), compressors=comp)
         for name, arr in (("tets", tets), ("endo", endo), ("epi", epi), ("base", base)):
             g.create_array(name, data=np.asarray(arr, dtype=np.int32), compressors=comp)
-        g.create_array("coefficients", data=np.asarray(coefficients, dtype=np.float64))
-        g.create_array("params", data=self.params.astype(np.float64))
-        g.create_array("status", shape=(K,), chunks=(K,), dtype=np.int8, fill_value=PENDING)
+        g.create_array("coefficients", data=np.asarray(coefficients, dtype=np.float64), compressors=comp)
+        g.create_array("params", data=self.params.astype(np.float64), compressors=comp)
+        g.create_array("status", shape=(K,), chunks=(K,), dtype=np.int8, fill_value=PENDING, compressors=comp)
         g.create_array("stats", shape=(K, len(STAT_NAMES)), chunks=(K, len(STAT_NAMES)), dtype=np.float64,
-                       fill_value=np.nan)
+                       fill_value=np.nan, compressors=comp)
         for name in ("unloaded", "loaded"):
             g.create_array(name, shape=(K, n, 3), chunks=(1, n, 3), dtype=COORD_DTYPE, fill_value=np.nan,
                            compressors=comp, dimension_names=("case", "node", "xyz"))
@@ -401,6 +445,16 @@ class PairStore:
         else:
             t.failures[str(k)] = reason
         t.dirty = True
+
+    def reset_damaged(self, shape_ids) -> list[tuple[int, int, str]]:
+        """Mark every done case whose chunks are damaged pending again (a sweep then recomputes it);
+        returns them as (shape, case, reason)."""
+        found = damaged_cases(lambda s: self._handle(s)["group"], shape_ids, self.status)
+        for s, k, _ in found:
+            self.set_case(s, k, PENDING, np.full(len(STAT_NAMES), np.nan))
+        if found:
+            self.flush()
+        return found
 
     def note_loss(self, shape_id: int, k: int) -> int:
         """Count a task for case k lost with its worker or node (the case stays pending); returns
@@ -524,12 +578,16 @@ class PairReader:
             raise StoreError(f"case {k} of shape {shape_id} is {STATUS_NAMES[int(status[k])]}, not done")
         g = self._shape(shape_id)
         s = self._static(shape_id)
-        unloaded, loaded = g["unloaded"][k], g["loaded"][k]
+        unloaded, loaded = read_case_chunks(g, shape_id, k, self.location)
         if not (np.all(np.isfinite(unloaded)) and np.all(np.isfinite(loaded))):
             raise StoreError(f"case {k} of shape {shape_id} is marked done but its data are not finite")
         row = (self.stats(shape_id) if _stats is None else _stats)[k]
         return Case(shape_id, int(k), dict(zip(PARAM_NAMES, map(float, s["params"][k]))), unloaded, loaded,
                     s["ed_reference"], s["tets"], dict(zip(self.stat_names, map(float, row))))
+
+    def damaged(self, shape_ids=None) -> list[tuple[int, int, str]]:
+        """(shape, case, reason) of every done case whose chunks are damaged (reads them all)."""
+        return damaged_cases(self._shape, self.shape_ids() if shape_ids is None else shape_ids, self.status)
 
     def iter_done(self, shape_ids=None):
         for s in (self.shape_ids() if shape_ids is None else shape_ids):
@@ -724,7 +782,7 @@ def encoded_case_bytes(unloaded: np.ndarray, loaded: np.ndarray) -> int:
     n = np.asarray(unloaded).shape[0]
     for name, x in (("unloaded", unloaded), ("loaded", loaded)):
         a = g.create_array(name, shape=(1, n, 3), chunks=(1, n, 3), dtype=COORD_DTYPE, fill_value=np.nan,
-                           compressors=_compressor())
+                           compressors=_codecs())
         a[0] = np.asarray(x, dtype=COORD_DTYPE)
     return sum(len(v.to_bytes()) for k, v in store._store_dict.items() if "/c/" in k)
 

@@ -536,10 +536,10 @@ def test_a_damaged_chunk_in_the_store_is_one_line(trained, tmp_path):
     assert chunks
     for p in chunks:
         p.write_bytes(b"not a blosc chunk" * 4)
-    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", store, "--no-plots"), "cannot read store",
-                     "damaged.zarr")
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", store, "--no-plots"), "damaged.zarr",
+                     "is damaged")
     assert_bad_input(run("train", "--store", store, "--run-dir", tmp_path / "r", "--no-ray", "--epochs", 1,
-                         "--device", "cpu"), "cannot read store")
+                         "--device", "cpu"), "damaged.zarr", "is damaged")
     assert not (tmp_path / "r").exists()
 
 
@@ -637,3 +637,42 @@ def test_evaluate_against_a_reference_store(trained, tmp_path):
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
                          other_grid, "--no-plots", "--out", tmp_path / "e4"), "none of the")
     assert not (tmp_path / "e3").exists() and not (tmp_path / "e4").exists()
+
+
+def test_a_checkpoint_with_a_changed_weight_is_refused(trained, tmp_path):
+    """A bit flipped in a stored weight loads silently with torch.load (tensors are stored raw); the
+    digest recorded at saving finds it: one line, exit 2. A checkpoint saved without a digest loads."""
+    damaged = tmp_path / "run"
+    shutil.copytree(trained["run"], damaged)
+    path = damaged / "checkpoint.pt"
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    assert state["tensors_sha256"]
+    name = next(k for k, v in state["model"].items() if v.is_floating_point() and v.numel())
+    state["model"][name].reshape(-1).view(torch.int32)[0] ^= 1 << 3  # one bit of one weight
+    torch.save(state, path)
+    assert_bad_input(run("evaluate", "--run", damaged, "--store", trained["store"], "--no-plots"),
+                     "do not match the digest")
+    del state["tensors_sha256"]
+    torch.save(state, path)
+    assert load_run(damaged)["model"][name].shape == state["model"][name].shape
+
+
+def test_a_flipped_bit_in_a_stored_case_is_found_on_every_read(trained, tmp_path):
+    """Every chunk carries a CRC-32C: one flipped bit in one case's chunk makes export, evaluate and
+    train refuse in one line naming shape and case, and status --verify lists it (exit 1)."""
+    store = tmp_path / "flipped.zarr"
+    shutil.copytree(trained["store"], store)
+    chunk = store / "shapes" / "0" / "unloaded" / "c" / "1" / "0" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    chunk.write_bytes(bytes(data))
+    assert_bad_input(run("export", "--store", store, "--shape", 0, "--case", 1, "-o", tmp_path / "c.vtu"),
+                     "shape 0 case 1 is damaged", "checksum")
+    assert not (tmp_path / "c.vtu").exists()
+    assert run("export", "--store", store, "--shape", 0, "--case", 0, "-o", tmp_path / "ok.vtu").exit_code == 0
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", store, "--split", "all", "--no-plots",
+                         "--out", tmp_path / "ev"), "shape 0 case 1 is damaged")
+    r = run("status", "--store", store, "--verify")
+    assert r.exit_code == 1 and "damaged: shape 0 case 1: its checksum does not match" in r.output, r.output
+    r = run("status", "--store", trained["store"], "--verify")
+    assert r.exit_code == 0 and "read back intact" in r.output, r.output

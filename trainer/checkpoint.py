@@ -1,7 +1,10 @@
 """Checkpoints of a run: plain dicts of tensors, numbers, strings and lists, written atomically with
-torch.save and read back with torch.load(weights_only=True), so no arbitrary object is unpickled."""
+torch.save and read back with torch.load(weights_only=True), so no arbitrary object is unpickled.
+A SHA-256 of every tensor is recorded when saving and checked when loading: torch stores tensors
+uncompressed and does not check them, so a flipped bit would otherwise load as a different network."""
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 from pathlib import Path
@@ -16,13 +19,40 @@ FORMAT = "heartctl.trainer.checkpoint"
 VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 REQUIRED = ("format", "version", "kind", "train_config", "normalisation", "fingerprint", "split", "epoch")
+DIGEST_KEY = "tensors_sha256"
+
+
+def _tensors(value, path: str = ""):
+    """(path, tensor) for every tensor inside nested dicts, lists and tuples, in a fixed order."""
+    if isinstance(value, torch.Tensor):
+        yield path, value
+    elif isinstance(value, dict):
+        for k in sorted(value, key=str):
+            yield from _tensors(value[k], f"{path}/{k}")
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            yield from _tensors(v, f"{path}/{i}")
+
+
+def tensors_digest(state: dict) -> str:
+    """SHA-256 over the name, dtype, shape and bytes of every tensor of a checkpoint (its digest entry
+    left out)."""
+    h = hashlib.sha256()
+    for name, t in _tensors({k: v for k, v in state.items() if k != DIGEST_KEY}):
+        t = t.detach().to("cpu").contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
 
 
 def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
-    """Write `state` (with format/version added) to `path` via a temporary file and a rename."""
+    """Write `state` (with format/version and the tensors' digest added) to `path` via a temporary
+    file and a rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write(path, lambda tmp: torch.save({"format": FORMAT, "version": VERSION, **state}, tmp))
+    full = {"format": FORMAT, "version": VERSION, **state}
+    full[DIGEST_KEY] = tensors_digest(full)
+    atomic_write(path, lambda tmp: torch.save(full, tmp))
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:
@@ -42,6 +72,9 @@ def load_checkpoint(path: str | os.PathLike) -> dict:
     missing = [k for k in REQUIRED if k not in state]
     if missing:
         raise TrainerError(f"checkpoint {path} lacks {', '.join(missing)}")
+    if DIGEST_KEY in state and state[DIGEST_KEY] != tensors_digest(state):
+        raise TrainerError(f"checkpoint {path} is damaged: its tensors do not match the digest recorded when it was "
+                           f"saved (a changed byte); use another copy or train again")
     check_contents(state, path)
     return state
 
