@@ -1123,7 +1123,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         return
     from orchestrator.sweep import init_ray, run_sweep
 
-    if left is not None:
+    if left is not None and not retry_damaged:  # damage is found by reading every case, in the sweep
         if left["to_run"] == 0:
             if as_json:  # the keys of a run's report, nothing submitted
                 from orchestrator.sweep import SweepReport

@@ -375,3 +375,28 @@ def test_an_unwritable_store_folder_is_refused_before_ray(tmp_path, monkeypatch)
     sweep.check_request(spec(), "file://" + str(tmp_path / "s.zarr"), for_writing=False)  # a plan writes nothing
     res = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--local"])
     assert res.exit_code == 2 and "not writable" in res.output and not (tmp_path / "s.zarr").exists()
+
+
+def test_retry_damaged_recomputes_only_the_damaged_case(tmp_path):
+    """A flipped bit in one done case: generate refuses nothing (status arrays are intact), status
+    --verify names the case, generate --retry-damaged solves it again (and only it), after which
+    every case reads back intact."""
+    from trainer_fixtures import make_tiny_store
+
+    store = Path(make_tiny_store(tmp_path / "t.zarr", shapes=1))
+    reader = PairReader(str(store))
+    intact = reader.case(0, 0).unloaded.copy()
+    chunk = store / "shapes" / "0" / "loaded" / "c" / "2" / "0" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 3] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    assert PairReader(str(store)).damaged() == [(0, 2, "its checksum does not match (changed bytes)")]
+    code, err = _run_cli(["status", "--store", str(store), "--verify"])
+    assert code == 1
+    res = CliRunner().invoke(__import__("cli").app, ["generate", "--store", str(store), "--retry-damaged"])
+    assert res.exit_code == 0, res.output
+    assert "1 damaged case(s) recomputed: shape 0 case 2" in res.output
+    after = PairReader(str(store))
+    assert after.damaged() == [] and after.status(0).tolist() == [DONE] * 4
+    assert np.array_equal(after.case(0, 0).unloaded, intact)  # the intact cases were not recomputed
+    assert np.linalg.norm(after.case(0, 2).loaded - after.mesh(0).nodes, axis=1).max() < 1e-3
