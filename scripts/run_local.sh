@@ -20,21 +20,27 @@ $HEARTCTL generate --local --store "$OUT/local.zarr"
 $HEARTCTL status --store "$OUT/local.zarr"
 
 echo
-echo "== 4. Train HeartUnloadNet on that store (Ray Train, two CPU workers, a few epochs) and evaluate it"
+echo "== 4. Train HeartUnloadNet on that store (Ray Train, two CPU workers, a few epochs)"
 echo "   (configuration A1ema-resp-d0, our best on the paper grid; --config paper is the paper's model)"
 rm -rf "$OUT/run_local"
 $HEARTCTL train --local --store "$OUT/local.zarr" --run-dir "$OUT/run_local" --config A1ema-resp-d0
-$HEARTCTL evaluate --run "$OUT/run_local" --store "$OUT/local.zarr"
 
 echo
-echo "== 5. Unload one ED mesh: by the network, then by inverse FE (8 mmHg, C = 150 Pa, helix +60/−60°)"
+echo "== 5. Reference pairs of the same ED meshes (the accurate preset on each mesh refined once: near the"
+echo "   converged solution), at one parameter set, to score the network and its fast labels against"
+rm -rf "$OUT/local_reference.zarr"
+$HEARTCTL generate --local --fidelity reference --pressures 8 --stiffness 100 --store "$OUT/local_reference.zarr"
+$HEARTCTL evaluate --run "$OUT/run_local" --store "$OUT/local.zarr" --reference "$OUT/local_reference.zarr"
+
+echo
+echo "== 6. Unload one ED mesh: by the network, then by inverse FE (8 mmHg, C = 150 Pa, helix +60/−60°)"
 $HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --method gnn --run "$OUT/run_local" -o "$OUT/shape0_unloaded_gnn.vtu"
 $HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --method fe --fidelity fast -o "$OUT/shape0_unloaded.vtu"
 
 echo
-echo "== 6. Check: inflate the FE-unloaded mesh again; it must land on the ED mesh"
+echo "== 7. Check: inflate the FE-unloaded mesh again; it must land on the ED mesh"
 $HEARTCTL solve "$OUT/shape0_unloaded.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --fidelity fast -o "$OUT/shape0_reloaded.vtu"
 .venv/bin/python - "$OUT/shape0_ed.vtu" "$OUT/shape0_reloaded.vtu" <<'PY'

@@ -25,29 +25,30 @@ def unit_scale(units: str) -> float:
 def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
     """Read a linear tet mesh; coordinates converted to mm. Surfaces come from a `surface` triangle
     tag (1 endo, 2 epi, 3 base) when present, otherwise they are found from the geometry."""
-    import meshio
-
     scale = unit_scale(units)
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"mesh file {path} does not exist")
-    import contextlib
-    import io
-
     m = read_meshio(path)
     tets = linear_tets(m, path)
     points = np.asarray(m.points, dtype=float)
     if points.ndim != 2 or points.shape[1] != 3:
         raise MeshError(f"{path} must have 3-D points")
-    used = np.unique(tets)
-    if used.size != points.shape[0]:  # drop points that belong to no tet
-        remap = -np.ones(points.shape[0], np.int64)
-        remap[used] = np.arange(used.size)
-        points, tets = points[used], remap[tets]
-    else:
-        remap = None
-    surfaces = _tagged_surfaces(m, remap, path)
+    _check_indices(tets, points.shape[0], path, "tetrahedra")
+    unused = np.setdiff1d(np.arange(points.shape[0]), tets)
+    if unused.size:  # dropping them would renumber the nodes: the answer would not match the input's
+        raise MeshError(f"{path} has {unused.size} points that belong to no tetrahedron (e.g. point {unused[0]}); "
+                        f"remove them, so that the output's nodes are the input's")
+    surfaces = _tagged_surfaces(m, path)
     return make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
+
+
+def _check_indices(cells: np.ndarray, n_points: int, path, what: str) -> None:
+    """MeshError when a cell refers to a point the file does not have (negative or past the last)."""
+    bad = (cells < 0) | (cells >= n_points)
+    if bad.any():
+        raise MeshError(f"{path}: {what} refer to point {int(cells[bad][0])}, but the file's points are numbered "
+                        f"0–{n_points - 1}")
 
 
 def read_meshio(path: Path):
@@ -86,7 +87,7 @@ def linear_tets(m, path) -> np.ndarray:
     return np.vstack(tets).astype(np.int64)
 
 
-def _tagged_surfaces(m, remap, path):
+def _tagged_surfaces(m, path):
     if TAG_NAME not in m.cell_data:
         return None, None, None
     tris, codes = [], []
@@ -101,8 +102,7 @@ def _tagged_surfaces(m, remap, path):
     if unknown.any():
         raise MeshError(f"{path}: {int(unknown.sum())} triangles carry a `{TAG_NAME}` value other than "
                         f"{', '.join(f'{v} ({k})' for k, v in SURFACE_CODES.items())}, e.g. {codes[unknown][0]:g}")
-    if remap is not None:
-        tris = remap[tris]
+    _check_indices(tris, len(m.points), path, "surface triangles")
     return tuple(tris[codes == SURFACE_CODES[k]] for k in ("endo", "epi", "base"))
 
 

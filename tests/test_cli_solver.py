@@ -108,6 +108,12 @@ def _write_bad(tmp_path, kind, lv_file):
         tets = lv.tets.copy()
         tets[5, 3] = tets[5, 0]
         meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    elif kind in ("index_past", "index_negative"):  # a tet naming a point the file does not have
+        tets = lv.tets.copy()
+        tets[7, 2] = lv.n_nodes + 4 if kind == "index_past" else -1
+        meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    elif kind == "unused_point":  # a point in no tet: dropping it would renumber the output's nodes
+        meshio.write(path, meshio.Mesh(np.vstack([lv.nodes, [[0.0, 0.0, 50.0]]]), [("tetra", lv.tets)]))
     elif kind == "wedges":  # tets plus a few wedge cells, which a tet reader would drop silently
         wedges = np.array([[0, 1, 2, 3, 4, 5], [6, 7, 8, 9, 10, 11]])
         meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", lv.tets), ("wedge", wedges)]))
@@ -145,6 +151,9 @@ BAD_MESHES = {
     "floating": "separate pieces",
     "repeated": "degenerate",
     "wedges": "not linear tetrahedra (wedge)",
+    "index_past": "tetrahedra refer to point",
+    "index_negative": "tetrahedra refer to point -1",
+    "unused_point": "1 points that belong to no tetrahedron",
     "untagged_part": "carry no surface tag",
     "unknown_tag": "other than 1 (endo)",
     "tagged_twice": "more than one surface tag",
