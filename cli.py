@@ -114,7 +114,7 @@ ScalePctOpt = typer.Option(0.0, "--scale-pct", help="Augment: scale each trainin
 # every name in trainer.config.NAMED_CONFIGS (tested; cli.py does not import the trainer, so --help stays light)
 CONFIG_HELP = ("Model: paper | multitoken | A1 A2 A3 A4 A5 | C0 C2 C5 C6 | R1 R2 R3 R4 R5 | A1ema | A1ema-wall "
                "A1ema-wall-d0 A1ema-wall-d0-load | A1ema-resp-d0 (our best) A1ema-resp-d0-load A1ema-resp-d0-gcn "
-               "R5-resp-d0 | pca (README: Configurations).")
+               "R5-resp-d0 | pca (README and docs/training.md: Configurations).")
 LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve the rate after 10 epochs without a better "
                                                               "validation loss: the paper) | cosine (anneal towards 1 % "
                                                               "of --lr over --epochs, set per epoch).")
@@ -404,11 +404,11 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
               f"base {base.value}, {fibres} fibres.\n\nCommand: `heartctl {' '.join(sys.argv[1:])}`\n")
     paths = write_report(result, out, header)
     for o in result["orders"]:
-        if o["preset"] == "accurate" or len(o["level_diffs_mean_mm"]) >= 2:
-            typer.echo(f"{o['shape']:>6} {o['case']:>4} {o['hierarchy']:>9} {o['preset']:>8}: level differences "
-                       + ", ".join(f"{d:.4f}" for d in o["level_diffs_mean_mm"])
-                       + f" mm, order {o['order_mean']:.2f} (max-norm {o['order_max']:.2f}), "
-                       f"finest error ≈ {o['finest_error_mean_mm']:.4f} mm mean")
+        diffs = ", ".join(f"{d:.4f}" for d in o["level_diffs_mean_mm"])
+        order = (f"order {o['order_mean']:.2f} (max-norm {o['order_max']:.2f})" if len(o["level_diffs_mean_mm"]) >= 2
+                 else f"with the deepest mesh's order {o['order_used']:.2f}")
+        typer.echo(f"{o['shape']:>6} {o['case']:>4} {o['hierarchy']:>9} {o['preset']:>8}: mean differences of levels "
+                   f"{diffs} mm; {order}: finest level's error ≈ {o['finest_error_mean_mm']:.4f} mm mean")
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}")
 
 

@@ -6,7 +6,7 @@ each other's progress and delete each other's files. The lock is an exclusive `f
 `.heartctl-writer.lock` in the store, whose content names the holder (host, pid, start time). The
 kernel releases it when the holder's process ends, however it ends, so a killed driver leaves no
 stale lock and no two processes can hold it at once. Object stores (s3://, gs://) have no such
-file: there, run one driver per store (README, "On a cluster"). On network file systems flock is
+file: there, run one driver per store (README and docs/data.md, "On a cluster"). On network file systems flock is
 as reliable as their locking.
 """
 from __future__ import annotations

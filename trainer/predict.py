@@ -24,7 +24,7 @@ class Predictor:
     predicted K times, turned about z by 2πj/K (j = 0…K−1) with every prediction turned back by
     −2πj/K, and the K displacements are averaged: exact for the FE problem, it averages out the
     network's lack of symmetry, at K times the inference cost. Best with a network trained with
-    `--rotate-deg 180`, which has seen every orientation (README: measured figures)."""
+    `--rotate-deg 180`, which has seen every orientation (docs/training.md, "Accuracy")."""
 
     def __init__(self, state: dict, device: str | torch.device = "cpu", which: str = "best_model",
                  rotations: int = 1):
