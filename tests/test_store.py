@@ -80,7 +80,10 @@ def test_round_trip_and_done_only_reads(tmp_path, shape0, real_pair):
     root = zarr.open_group(loc, mode="r")
     u = root["shapes/0/unloaded"]
     assert u.shape == (2, shape0["mesh"].n_nodes, 3) and u.chunks == (1, shape0["mesh"].n_nodes, 3)
-    assert u.dtype == np.float32 and u.metadata.codecs[-1].__class__.__name__ == "BloscCodec"
+    codecs = [c.__class__.__name__ for c in u.metadata.codecs]
+    assert u.dtype == np.float32 and codecs[-2:] == ["BloscCodec", "Crc32cCodec"]  # compressed, then checksummed
+    for name in ("ed_reference", "tets", "endo", "params", "status", "stats", "loaded"):
+        assert root[f"shapes/0/{name}"].metadata.codecs[-1].__class__.__name__ == "Crc32cCodec", name
 
     s = summarize(loc)
     assert (s["done"], s["failed"], s["pending"], s["total"]) == (1, 1, 2, 4)

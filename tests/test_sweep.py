@@ -377,10 +377,10 @@ def test_an_unwritable_store_folder_is_refused_before_ray(tmp_path, monkeypatch)
     assert res.exit_code == 2 and "not writable" in res.output and not (tmp_path / "s.zarr").exists()
 
 
-def test_retry_damaged_recomputes_only_the_damaged_case(tmp_path):
-    """A flipped bit in one done case: generate refuses nothing (status arrays are intact), status
-    --verify names the case, generate --retry-damaged solves it again (and only it), after which
-    every case reads back intact."""
+def test_retry_damaged_recomputes_only_the_damaged_case(ray_cluster, tmp_path):
+    """A flipped bit in one done case: status --verify names the case (exit 1), a sweep with
+    retry_damaged (generate --retry-damaged) solves it again, and only it, after which every case
+    reads back intact."""
     from trainer_fixtures import make_tiny_store
 
     store = Path(make_tiny_store(tmp_path / "t.zarr", shapes=1))
@@ -391,11 +391,10 @@ def test_retry_damaged_recomputes_only_the_damaged_case(tmp_path):
     data[len(data) // 3] ^= 0x01
     chunk.write_bytes(bytes(data))
     assert PairReader(str(store)).damaged() == [(0, 2, "its checksum does not match (changed bytes)")]
-    code, err = _run_cli(["status", "--store", str(store), "--verify"])
+    code, _ = _run_cli(["status", "--store", str(store), "--verify"])
     assert code == 1
-    res = CliRunner().invoke(__import__("cli").app, ["generate", "--store", str(store), "--retry-damaged"])
-    assert res.exit_code == 0, res.output
-    assert "1 damaged case(s) recomputed: shape 0 case 2" in res.output
+    report = run_sweep(SweepSpec.from_attrs(reader.attrs), str(store), progress=False, retry_damaged=True)
+    assert report.damaged_reset == [(0, 2)] and report.done == 1
     after = PairReader(str(store))
     assert after.damaged() == [] and after.status(0).tolist() == [DONE] * 4
     assert np.array_equal(after.case(0, 0).unloaded, intact)  # the intact cases were not recomputed

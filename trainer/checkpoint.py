@@ -39,9 +39,10 @@ def tensors_digest(state: dict) -> str:
     left out)."""
     h = hashlib.sha256()
     for name, t in _tensors({k: v for k, v in state.items() if k != DIGEST_KEY}):
-        t = t.detach().to("cpu").contiguous()
+        t = t.detach().to("cpu")
+        dense = torch.empty(t.shape, dtype=t.dtype).copy_(t)  # fresh strides (an expanded 1-element tensor has stride 0)
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        h.update(dense.reshape(-1).view(torch.uint8).numpy().tobytes())
     return h.hexdigest()
 
 
