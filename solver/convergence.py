@@ -289,18 +289,21 @@ def markdown_report(result: dict, header: str = "") -> str:
 
 
 def plot_report(result: dict, path: Path) -> None:
-    """Log-log PNG: mean nodal error against the reference vs time per case, one panel per case."""
+    """Log-log PNG: mean nodal error against the reference vs time per case, one panel per case;
+    colour = preset, marker = mesh, line style = shape, the points of a line = refinement levels."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     cases = list(dict.fromkeys(r["case"] for r in result["rows"]))
-    fig, axes = plt.subplots(1, len(cases), figsize=(6.2 * len(cases), 4.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(cases), figsize=(5.6 * len(cases) + 2.2, 4.6), squeeze=False)
     colours = {"fast": "tab:orange", "accurate": "tab:blue"}
     names = list(dict.fromkeys(r["hierarchy"] for r in result["rows"]))
     markers = dict(zip(names, "os^Dv<>"))
-    styles = {"mean": "-", "minus2": "--", "plus2": ":"}
+    shapes = list(dict.fromkeys(r["shape"] for r in result["rows"]))
+    styles = dict(zip(shapes, ("-", "--", ":", "-.")))
     for ax, case in zip(axes[0], cases):
         groups: dict[tuple, list] = {}
         for r in result["rows"]:
@@ -309,8 +312,7 @@ def plot_report(result: dict, path: Path) -> None:
         for (shape, hier, preset), rs in groups.items():
             rs = sorted(rs, key=lambda r: r["level"])
             ax.plot([r["wall_s"] for r in rs], [r["mean_mm"] for r in rs], styles.get(shape, "-"),
-                    marker=markers.get(hier, "^"), color=colours.get(preset, "k"), alpha=0.8,
-                    label=f"{preset}, {hier} mesh, {shape} shape")
+                    marker=markers.get(hier, "^"), color=colours.get(preset, "k"), alpha=0.8)
         ax.set_xscale("log")
         ax.set_yscale("log")
         params = CASES[case]
@@ -318,8 +320,11 @@ def plot_report(result: dict, path: Path) -> None:
         ax.set_xlabel("time per case, s (one inverse solve, one thread)")
         ax.set_ylabel("mean nodal error vs converged, mm")
         ax.grid(True, which="both", alpha=0.3)
-    axes[0][-1].legend(fontsize=7, loc="best")
-    fig.tight_layout()
+    handles = ([Line2D([], [], color=c, lw=2, label=p) for p, c in colours.items()]
+               + [Line2D([], [], color="grey", ls="", marker=markers[h], label=f"{h} mesh") for h in names]
+               + [Line2D([], [], color="grey", ls=styles[s], label=f"{s} shape") for s in shapes])
+    fig.legend(handles=handles, loc="center right", fontsize=8, title="points: refinement levels", title_fontsize=8)
+    fig.tight_layout(rect=(0, 0, 1 - 2.0 / fig.get_figwidth(), 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

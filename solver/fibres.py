@@ -11,7 +11,7 @@ The field is discretised to the order of the displacement it drives. For P1 disp
 and t constant per tet. For P2 displacements φ is P2 and t is evaluated at each quadrature point:
 a per-tet t is only first-order accurate, and on the strongly curved apical wall (a coarse mesh has
 one or two tets across it) its error dominated the P2 solution's discretisation error, so that it
-did not shrink at P2's rate under refinement (`heartctl bench convergence`, docs/verification.md)."""
+did not shrink at P2's rate under refinement (`heartctl bench convergence`, docs/solver.md)."""
 from __future__ import annotations
 
 import numpy as np

@@ -285,7 +285,7 @@ def _refined_guess(ed_mesh: TetMesh, params: CaseParameters, fid: Fidelity, base
 def _refined_inverse(ed_mesh: TetMesh, params: CaseParameters, fid: Fidelity, base: str,
                      initial_unloaded: np.ndarray | None, tol_mm: float | None, fibres: str) -> InverseResult:
     """inverse_solve on the refined ED mesh, answered at `ed_mesh`'s vertices (its first nodes). The
-    result keeps the refined solve's state and problem (make_pair handles refinement itself)."""
+    result has no state or problem (they belong to the refined mesh; make_pair handles refinement itself)."""
     t0 = time.perf_counter()
     fine_ed = refine_uniform(ed_mesh, fid.refinement_levels)
     guess = _refined_guess(ed_mesh, params, fid, base, initial_unloaded, fibres)
@@ -322,7 +322,7 @@ def unloaded_guess(solved: list[tuple[float, np.ndarray]], pressure_mmhg: float)
     X [n, 3])] in the order solved: the last X alone, or the straight line in P through the last two.
     None without a solved pressure. The inverse still iterates to its own tolerance; the guess only
     saves load steps and fixed-point updates (a pressure chain of `fast` pairs: 2–3× fewer Newton
-    iterations, README "Distributed data generation")."""
+    iterations, docs/data.md)."""
     if not solved:
         return None
     p1, x1 = solved[-1]
