@@ -412,7 +412,7 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}")
 
 
-# --- the original paper's dataset (issue 5) ---
+# --- the original paper's dataset ---
 
 
 @app.command("import-l2u")
@@ -485,7 +485,7 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
                    f"= {100 * o['aligned_relative']:.1f} %; goal ≤ 10 %")
 
 
-# --- training and evaluation (issue 4) ---
+# --- training and evaluation ---
 
 
 def _trainer_errors():
@@ -1033,10 +1033,10 @@ def _print_learning_curve(result: dict, root: Path) -> None:
     con.print(f"wrote learning_curve.csv and learning_curve.json to {root}")
 
 
-# --- end of training and evaluation (issue 4) ---
+# --- end of training and evaluation ---
 
 
-# --- data generation (issue 3) ---
+# --- data generation ---
 
 
 def _store_errors():
@@ -1343,7 +1343,7 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
                "idle core s/task = (CPUs × wall − Σ solve) / pairs, everything that is not solving.")
 
 
-# --- end of data generation (issue 3) ---
+# --- end of data generation ---
 
 
 import numpy as np  # noqa: E402  (after the app so `heartctl --help` stays light)

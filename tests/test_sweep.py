@@ -167,7 +167,7 @@ def test_driver_killed_then_rerun_finishes(ray_cluster, tmp_path):
     loc = str(tmp_path / "d.zarr")
     # One task in flight and 96 cases (16 chain tasks): the store's status is flushed every
     # FLUSH_INTERVAL_S, so the sweep must outlast a few flushes even on a fast machine for the kill to
-    # land mid-sweep (24 cases did not, once session 26's solver solved them in under a flush).
+    # land mid-sweep (24 cases did not, when the solver solved them in under a flush).
     pressures = ",".join(f"{p:g}" for p in np.linspace(4.0, 15.0, 12))
     args = _heartctl() + ["generate", "--store", loc, "--address", ray_cluster, "--shapes", "2",
                           "--pressures", pressures, "--stiffness", "50,100,200,300", "--endo", "60",

@@ -332,7 +332,7 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     from trainer.pca import RIDGE_GRID, PCABaseline
     fitted = load_run(run)["best_model"]
     assert float(fitted["ridge"]) in RIDGE_GRID  # chosen on the validation cases
-    older = {k: v for k, v in fitted.items() if k != "feature_map"}  # a fit from before session 18
+    older = {k: v for k, v in fitted.items() if k != "feature_map"}  # a fit without the feature map
     with pytest.raises(TrainerError, match="older feature map"):
         PCABaseline(older)
     # the ridge chosen on the validation cases is the grid's best there

@@ -3,9 +3,9 @@ wall (ζ base–apex, τ transmural, θ circumferential), PCA of the training on
 regressed (ridge) from features of the parameters and of the ED shape's own PCA scores.
 
 The features are quadratic in the scaled parameters p̂, linear in the shape scores s, plus the
-products p̂_i·s_j (how a shape gives depends on the load). Until session 17 they were quadratic in
-(p̂, s) together: with 36 training shapes the 36 shape-only quadratic terms interpolated the training
-shapes and extrapolated badly (60-shape paper grid: test MD 1.18 mm, no better than the mean
+products p̂_i·s_j (how a shape gives depends on the load). Not quadratic in (p̂, s) together: with
+36 training shapes the 36 shape-only quadratic terms interpolate the training shapes and extrapolate
+badly (60-shape paper grid: test MD 1.18 mm, no better than the mean
 displacement, against 0.29 mm on the training cases). The ridge weight is chosen on the validation
 cases when they are given."""
 from __future__ import annotations
