@@ -73,6 +73,14 @@ def _input_errors():
     return (MeshError, ParameterError, ValueError, FileNotFoundError, IsADirectoryError)
 
 
+def _solver_threads(threads: int) -> None:
+    """Threads for the sparse solver and BLAS (set before they load); exit 2 below 1."""
+    if threads < 1:
+        fail(f"--threads must be ≥ 1, got {threads}")
+    for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ[var] = str(threads)
+
+
 def _params(pressure, stiffness, endo, epi):
     from solver.parameters import CaseParameters
 
@@ -312,10 +320,7 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
                  threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver (goals are for 1 core)."),
                  as_json: bool = typer.Option(False, "--json")):
     """Wall time of forward and pair per preset at a mid case (8 mmHg, 150 Pa) and the extreme (14, 50)."""
-    if threads < 1:
-        fail(f"--threads must be ≥ 1, got {threads}")
-    for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = str(threads)
+    _solver_threads(threads)
     from solver.benchmark_solver import run_solver_benchmark
 
     presets = [f.value for f in fidelity] if fidelity else ["fast", "accurate"]
@@ -382,10 +387,7 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
     """Mesh convergence of unloading: fast and accurate on a coarse and a default mesh and their uniform
     refinements, each answer's nodal error against the finest accurate answer, observed orders and the
     finest answer's estimated own error (Richardson). Writes a Markdown table and a log-log PNG."""
-    if threads < 1:
-        fail(f"--threads must be ≥ 1, got {threads}")
-    for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ[var] = str(threads)
+    _solver_threads(threads)
     from solver.convergence import ConvergenceSpec, parse_hierarchies, run_convergence, write_report
 
     try:

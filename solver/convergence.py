@@ -186,11 +186,12 @@ class SolveCache:
 
 def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progress=None) -> dict:
     """Every (shape, case, hierarchy, preset, level) unloaded and scored. Returns {"rows": per
-    solve, "orders": per (shape, case, hierarchy, preset) with ≥ 3 levels, "references": per
-    (shape, case, hierarchy) with the reference's estimated own error}."""
+    solve, "orders": per (shape, case, hierarchy, preset): the differences of its levels, the
+    observed order (≥ 3 levels) and its finest level's estimated error; the accurate entries give
+    the reference's own error}."""
     spec.validate()
     cache = SolveCache(cache_dir)
-    rows, orders, references = [], [], []
+    rows, orders = [], []
     order_of = {}  # (shape, case, preset) → observed mean order, from the deepest hierarchy
     for shape_name in spec.shapes:
         shape = convergence_shape(shape_name)
@@ -237,13 +238,7 @@ def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progre
                     entry["finest_error_mean_mm"] = richardson_error(diffs[-1]["mean_mm"], p)
                     entry["finest_error_max_mm"] = richardson_error(diffs[-1]["max_mm"], p)
                     orders.append(entry)
-                    if preset == "accurate":
-                        references.append({"shape": shape_name, "case": case, "hierarchy": hierarchy.name,
-                                           "nodes": reference.nodes, "wall_s": reference.wall_s,
-                                           "order": p, "error_mean_mm": entry["finest_error_mean_mm"],
-                                           "error_max_mm": entry["finest_error_max_mm"]})
-    return {"spec": _spec_dict(spec), "solver": cache.digest, "rows": rows, "orders": orders,
-            "references": references}
+    return {"spec": _spec_dict(spec), "solver": cache.digest, "rows": rows, "orders": orders}
 
 
 def _spec_dict(spec: ConvergenceSpec) -> dict:

@@ -2,7 +2,7 @@
 A case is fully described by (shape, parameters, fidelity), so presets are frozen values."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 
 @dataclass(frozen=True)
@@ -46,8 +46,6 @@ class Fidelity:
 
     def unrefined(self) -> "Fidelity":
         """This preset on the mesh as given (what it solves on the refined mesh)."""
-        from dataclasses import replace
-
         return replace(self, refinement_levels=0)
 
 

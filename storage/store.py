@@ -191,16 +191,25 @@ def _damage(exc: Exception) -> str:
 RECOMPUTE_HINT = "`heartctl status --verify` lists the damaged cases, `heartctl generate --retry-damaged` recomputes them"
 
 
-def read_case_chunks(group, shape_id: int, k: int, location: str = "") -> tuple[np.ndarray, np.ndarray]:
-    """(unloaded, loaded) of case k from a shape's group; StoreError naming the store and the case
-    when a chunk is damaged (checksum mismatch, or it does not decompress)."""
+def _chunk_damage(group, k: int) -> tuple[tuple | None, str | None]:
+    """((unloaded, loaded), None) of case k from a shape's group, or (None, the damage in words) when a
+    chunk does not read back (checksum mismatch, or it does not decompress)."""
     try:
-        return group["unloaded"][k], group["loaded"][k]
+        return (group["unloaded"][k], group["loaded"][k]), None
     except (TypeError, AttributeError, NameError):
         raise
     except Exception as exc:
+        return None, _damage(exc)
+
+
+def read_case_chunks(group, shape_id: int, k: int, location: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """(unloaded, loaded) of case k from a shape's group; StoreError naming the store and the case
+    when a chunk is damaged."""
+    arrays, damage = _chunk_damage(group, k)
+    if damage is not None:
         where = f"store {location}: " if location else ""
-        raise StoreError(f"{where}shape {shape_id} case {k} is damaged: {_damage(exc)}; {RECOMPUTE_HINT}") from None
+        raise StoreError(f"{where}shape {shape_id} case {k} is damaged: {damage}; {RECOMPUTE_HINT}")
+    return arrays
 
 
 def damaged_cases(group_of, shape_ids, status_of) -> list[tuple[int, int, str]]:
@@ -209,10 +218,9 @@ def damaged_cases(group_of, shape_ids, status_of) -> list[tuple[int, int, str]]:
     for s in shape_ids:
         g = group_of(s)
         for k in np.flatnonzero(status_of(s) == DONE):
-            try:
-                read_case_chunks(g, s, int(k))
-            except StoreError as exc:
-                out.append((s, int(k), str(exc).split(" is damaged: ", 1)[1].split("; ")[0]))
+            damage = _chunk_damage(g, int(k))[1]
+            if damage is not None:
+                out.append((s, int(k), damage))
     return out
 
 

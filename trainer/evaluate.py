@@ -83,16 +83,15 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     single_ms = pred.time_ms_per_case(items[:timing_cases], 1)
     batched_ms = pred.time_ms_per_case(items[:max(timing_cases, batch_size)], batch_size)
     response_ms = _response_ms_per_mesh(pred, items[0][0])
-    rows, errors = [], []
+    rows, errors, guesses = [], [], {}
     for k, (feat, params, _), d in zip(keys, items, disps):
         true = cases.unloaded[k]
-        guess = feat.ed_mm + d
+        guess = guesses[k] = feat.ed_mm + d
         m = case_metrics(guess, true)
         errors.append(nodewise_error(guess, true))
         rows.append({"shape_id": k[0], "case": k[1], **dict(zip(PARAM_NAMES, map(float, params))),
                      "nodes": int(feat.ed_mm.shape[0]), **m})
     if matches is not None:
-        guesses = {k: cases.ed(k) + d for k, d in zip(keys, disps)}
         ref_rows = reference_rows(guesses, cases, ref_cases, matches)
         nan_row = dict.fromkeys(next(iter(ref_rows.values())), float("nan"))
         for r in rows:
