@@ -45,6 +45,7 @@ class UnloadMethod(str, Enum):
     fe = "fe"
     gnn = "gnn"
     hybrid = "hybrid"
+    auto = "auto"  # the cheapest method that met --tolerance-mm on the run's trade table
 
 
 class Problem(str, Enum):
@@ -105,6 +106,41 @@ def _write_mesh(out: Path, *args, **kwargs) -> None:
         write_mesh(out, *args, **kwargs)
     except OSError as exc:
         fail(f"cannot write {out}: {exc.strerror or exc}")
+
+
+def _read_mesh(path: Path, units: str):
+    """storage.meshfiles.read_mesh, its MeshUnitsWarning (sizes no human LV has) as one line on stderr."""
+    from storage.meshfiles import read_mesh
+
+    with _warnings_as_lines():
+        return read_mesh(path, units)
+
+
+class _warnings_as_lines:
+    """Within the block, heartctl's warnings for the user (solver.mesh.MeshUnitsWarning) print as
+    one line each on stderr, `heartctl: warning: …`; other warnings pass on as usual."""
+
+    def __enter__(self):
+        import warnings
+
+        from solver.mesh import MeshUnitsWarning
+
+        self._category = MeshUnitsWarning
+        self._catcher = warnings.catch_warnings(record=True)
+        self._caught = self._catcher.__enter__()
+        warnings.simplefilter("always", MeshUnitsWarning)
+        return self
+
+    def __exit__(self, *exc):
+        import warnings
+
+        self._catcher.__exit__(*exc)
+        for w in self._caught:
+            if issubclass(w.category, self._category):
+                typer.echo(f"heartctl: warning: {w.message}", err=True)
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return False
 
 
 PressureOpt = typer.Option(..., "--pressure", help="ED cavity pressure, mmHg (> 0).")
@@ -170,13 +206,12 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
     """Forward inflation of an unloaded mesh to the ED pressure."""
     from solver.forward import SolveError
     from solver.lv import forward_solve
-    from storage.meshfiles import read_mesh
 
     try:
         params = _params(pressure, stiffness, endo, epi)
         _check_fibres(fibres)
         _check_output(out, mesh_path)
-        lv = read_mesh(mesh_path, units.value)
+        lv = _read_mesh(mesh_path, units.value)
     except _input_errors() as exc:
         fail(str(exc))
     try:
@@ -232,12 +267,39 @@ def _given(ctx: typer.Context, name: str) -> bool:
     return source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP")
 
 
+def _auto_method(run: list[Path], tolerance_mm: float, n_nodes: int, fidelity: FidelityName):
+    """`--method auto`: the trade table's cheapest method that met the tolerance, as (method, preset,
+    update budget, runs); prints the choice and the error it expects."""
+    from trainer.trade import choose_method, load_trade
+
+    choice = choose_method(load_trade(run[0]), tolerance_mm, n_nodes, with_ensemble=len(run) > 1)
+    typer.echo(f"auto: {choice['method']} (p95 {choice['p95_mm']:.3f} mm, max {choice['max_mm']:.3f} mm against the "
+               f"converged solution on the trade table's {choice['nodes']}-node held-out meshes, "
+               f"{choice['time_mean_s']:.2f} s per case there; asked ≤ {tolerance_mm:g} mm)")
+    preset = FidelityName(choice["preset"]) if choice["preset"] else fidelity
+    runs = run if choice["ensemble"] or choice["method"] != "gnn" else run[:1]
+    return UnloadMethod(choice["method"]), preset, choice["updates"], runs
+
+
+def _print_check(lv, unloaded, params, fidelity: str, base: str, fibres: str) -> None:
+    """`--check`: the answer inflated again; its distance from the ED mesh estimates its error."""
+    from solver.reinflate import reinflation_error
+
+    chk = reinflation_error(lv, unloaded, params, fidelity, base, fibres)
+    if not chk.ok:
+        typer.echo(f"check: the answer could not be inflated again ({chk.failed}): do not trust it", err=True)
+        return
+    typer.echo(f"check: inflated again ({fidelity}, {chk.wall_s:.1f} s), the answer lands {chk.mean_mm:.3f} mm mean / "
+               f"{chk.max_mm:.3f} mm max from the ED mesh: an estimate of its error against the {fidelity} model")
+
+
 @app.command()
 def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="MESH", help="End-diastolic mesh."),
            pressure: float = PressureOpt, stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
            out: Path = typer.Option(..., "-o", "--out", help="Output: unloaded mesh with `displacement` (ED − unloaded)."),
            method: UnloadMethod = typer.Option(UnloadMethod.fe, "--method", help="fe: inverse finite elements; "
-                                               "gnn: the trained network; hybrid: network guess refined by inverse FE."),
+                                               "gnn: the trained network; hybrid: network guess refined by inverse FE; "
+                                               "auto: the cheapest that met --tolerance-mm on the run's trade table."),
            fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
            tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4)."),
            run: list[Path] = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid); "
@@ -245,12 +307,16 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
                                                               "gets their per-node spread)."),
            rotations: int = typer.Option(1, "--rotations", help="--method gnn|hybrid: average the network over K turns "
                                                                 "about the long axis (K× the time; best with --rotate-deg 180 runs)."),
-           fibres: str = FibresOpt):
+           fibres: str = FibresOpt,
+           tolerance_mm: float = typer.Option(None, "--tolerance-mm", help="--method auto: the p95 nodal error against "
+                                              "the converged solution you accept, mm (bench trade measured it)."),
+           check: bool = typer.Option(False, "--check", help="--method gnn|hybrid|auto: inflate the answer again (one "
+                                      "forward solve at --fidelity) and print how far it lands from the ED mesh.")):
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
     from solver.forward import SolveError
     from solver.lv import inverse_solve
-    from storage.meshfiles import read_mesh
 
+    max_updates = None
     try:
         params = _params(pressure, stiffness, endo, epi)
         _check_output(out, mesh_path)
@@ -260,20 +326,30 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         if rotations < 1 or (rotations > 1 and method is UnloadMethod.fe):
             raise ValueError(f"--rotations must be ≥ 1 and applies to --method gnn|hybrid, got {rotations}")
         run = run or None
-        if method is UnloadMethod.gnn:
+        if (tolerance_mm is None) != (method is not UnloadMethod.auto):
+            raise ValueError("--method auto needs --tolerance-mm X" if tolerance_mm is None
+                             else "--tolerance-mm applies to --method auto (use --tol-mm for the inverse FE's mismatch)")
+        if check and method is UnloadMethod.fe:
+            raise ValueError("--check applies to --method gnn|hybrid|auto: --method fe prints its own mismatch")
+        if method is UnloadMethod.gnn and not check:
             solver_only = [f"--{n.replace('_', '-')}" for n in ("fidelity", "tol_mm") if _given(ctx, n)]
             if solver_only:
                 raise ValueError(f"{' and '.join(solver_only)} appl{'y' if len(solver_only) > 1 else 'ies'} to "
                                  f"--method fe|hybrid: --method gnn solves nothing")
         if (run is None) != (method is UnloadMethod.fe):
             raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
-        lv = read_mesh(mesh_path, units.value)
+        lv = _read_mesh(mesh_path, units.value)
+        if method is UnloadMethod.auto:
+            method, fidelity, max_updates, run = _auto_method(run, tolerance_mm, lv.n_nodes, fidelity)
     except _input_errors() as exc:
         fail(str(exc))
     if method is not UnloadMethod.fe:
         asked = {name: value for name, value in (("base", base.value), ("fibres", fibres)) if _given(ctx, name)}
-        return _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm,
-                                    units.value, fibres, asked, rotations)
+        unloaded = _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm,
+                                        units.value, fibres, asked, rotations, max_updates)
+        if check:
+            _print_check(lv, unloaded, params, fidelity.value, base.value, fibres)
+        return
     try:
         result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm, fibres=fibres)
     except SolveError as exc:
@@ -377,6 +453,15 @@ def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fi
                f"(goal ≤ 1e-3 mm); {sum(r['wall_s'] for r in rows):.0f} s in all")
 
 
+def _machine_line(threads: int) -> str:
+    """Date, machine and solver threads, for a report's header."""
+    import datetime
+    import platform
+
+    return (f"{datetime.date.today().isoformat()}, {platform.machine()} {os.cpu_count()}-core machine, "
+            f"{threads} solver thread(s)")
+
+
 @bench_app.command("convergence")
 def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes", help="Comma-separated: mean | minus2 | plus2 (every shape mode at 0, −2 or +2 SD)."),
                       cases: str = typer.Option("mid,hard", "--cases", help="Comma-separated: mid (8 mmHg, 150 Pa) | hard (14 mmHg, 50 Pa)."),
@@ -398,11 +483,7 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
         result = run_convergence(spec, out / "solves", progress=typer.echo)
     except _input_errors() as exc:
         fail(str(exc))
-    import datetime
-    import platform
-
-    header = (f"# heartctl bench convergence\n\n{datetime.date.today().isoformat()}, {platform.machine()} "
-              f"{os.cpu_count()}-core machine, {threads} solver thread(s), solver sha256:{result['solver']}; "
+    header = (f"# heartctl bench convergence\n\n{_machine_line(threads)}, solver sha256:{result['solver']}; "
               f"base {base.value}, {fibres} fibres.\n\nCommand: `heartctl {' '.join(sys.argv[1:])}`\n")
     paths = write_report(result, out, header)
     for o in result["orders"]:
@@ -412,6 +493,46 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
         typer.echo(f"{o['shape']:>6} {o['case']:>4} {o['hierarchy']:>9} {o['preset']:>8}: mean differences of levels "
                    f"{diffs} mm; {order}: finest level's error ≈ {o['finest_error_mean_mm']:.4f} mm mean")
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}")
+
+
+@bench_app.command("trade")
+def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory of a trained network; repeat it to add "
+                                                                    "their ensemble as a method."),
+                shapes: int = typer.Option(2, "--shapes", help="Held-out shapes (the shape model's ids after the run's last)."),
+                cases: int = typer.Option(3, "--cases", help="Cases per mesh: the mid of the run's box, then its corners, hardest first (1–5)."),
+                user_nodes: int = typer.Option(800, "--user-nodes", help="Second mesh size, as users bring (0: the training resolution only)."),
+                out: Path = typer.Option(None, "--out", help="Report folder (default RUN/trade: where unload --method auto looks); "
+                                                             "solves/ there keeps the reference solves, so a rerun resumes."),
+                threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver.")):
+    """The speed–accuracy trade: held-out ED meshes unloaded by FE (fast, accurate), the network, and the
+    network's guess refined by 1, 2, 4 inverse updates or to tolerance, each against the converged
+    solution (the reference preset). Writes trade.md, trade.png and trade.json (read by --method auto)."""
+    _solver_threads(threads)
+    from trainer.trade import TradeSpec, run_trade, write_report
+
+    out = out or run[0] / "trade"
+    try:
+        spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes).validate()
+        result = run_trade(spec, out / "solves", progress=typer.echo)
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    header = (f"# heartctl bench trade\n\n{_machine_line(threads)}\n\n"
+              f"Command: `heartctl {' '.join(sys.argv[1:])}`\n")
+    paths = write_report(result, out, header)
+    for srow in result["summary"]:
+        err = (f"mean {srow['mean_mm']:.3f} / p95 {srow['p95_mm']:.3f} / max {srow['max_mm']:.3f} mm"
+               if "mean_mm" in srow else "no answer")
+        typer.echo(f"{srow['resolution']:>8} ({srow['nodes']:>4} nodes) {srow['method']:<22} {srow['ok']}/{srow['cases']} "
+                   f"{err}, {srow['time_mean_s']:.2f} s per case")
+    goal = result["hybrid_goal"]
+    if goal.get("cases"):
+        typer.echo(f"hybrid accurate to tolerance: {goal['time_ratio']:.2f} × the cold accurate time (goal ≤ 0.30), "
+                   f"answers within {goal['max_distance_mm']:.1e} mm (goal ≤ 0.01)")
+    track = result["check"]["gnn"]
+    if track.get("answers"):
+        typer.echo(f"--check on the network's answers: Spearman {track['spearman_max']:.2f} with the true max error "
+                   f"(goal ≥ 0.8); true ≈ {track['true_over_estimate_median']:.2f} × the check")
+    typer.echo(f"report: {paths['markdown']}, {paths['plot']}, {paths['json']}")
 
 
 # --- the original paper's dataset ---
@@ -511,14 +632,14 @@ def _check_training_device(device: str) -> None:
 
 
 def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fidelity: str, base: str, tol_mm, units: str,
-                         fibres: str, asked: dict, rotations: int = 1):
+                         fibres: str, asked: dict, rotations: int = 1, max_updates: int | None = None):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
     from solver.forward import SolveError
     from trainer.predict import unload_with_network
 
     try:
         result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm, fibres=fibres, asked=asked,
-                                     rotations=rotations)
+                                     rotations=rotations, max_updates=max_updates)
     except SolveError as exc:
         fail(f"inverse solve did not converge: {exc}", code=1)
     except _trainer_errors() as exc:
@@ -541,17 +662,19 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
                    f"(first call with graph building{' and the linear FE response' if result['with_response'] else ''} "
                    f"{result['first_call_ms']:.0f} ms); "
                    f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
-        return
+        return unloaded
     inv = result["inverse"]
     dropped = ""
     if result["fallback"]:
         lost = result.get("guess_attempt_s")
         dropped = ", guess unusable" + (f" after {lost:.1f} s of inverse FE from it" if lost is not None else "")
+    budget = f", at most {max_updates} updates" if max_updates is not None else ""
     typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms{dropped}"
-               f", then {fidelity} inverse FE): {inv.updates} updates, "
+               f", then {fidelity} inverse FE{budget}): {inv.updates} updates, "
                f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
                f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; "
                f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
+    return unloaded
 
 
 @app.command()
@@ -822,8 +945,9 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
             torch.set_num_threads(threads)
         if mesh is not None and not mesh.is_file():
             raise ValueError(f"--mesh {mesh}: no such file")
-        r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
-                        mesh_path=None if mesh is None else str(mesh), compile_model=compile_model, profile=profile)
+        with _warnings_as_lines():
+            r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
+                            mesh_path=None if mesh is None else str(mesh), compile_model=compile_model, profile=profile)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
@@ -1090,12 +1214,11 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
                     "mesh_units": units.value if units is not None else None}
         if meshes is not None:
             from orchestrator.grid import find_meshes
-            from storage.meshfiles import read_mesh
 
             explicit["meshes"] = find_meshes(meshes)
             explicit["shapes"] = explicit["shapes"] or len(explicit["meshes"])
             for path in explicit["meshes"]:  # every file must be a usable ED mesh before anything runs
-                read_mesh(path, explicit["mesh_units"] or "mm")
+                _read_mesh(path, explicit["mesh_units"] or "mm")
         for axis, text in zip(AXIS_FLAGS, (pressures, stiffness, endo, epi)):
             explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
         with reading_store(store, keep=(MeshError, ValueError, OSError)):  # argument and file errors keep their words

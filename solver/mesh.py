@@ -14,6 +14,11 @@ class MeshError(ValueError):
     """A mesh the solver cannot use; the message says what is wrong in one line."""
 
 
+class MeshUnitsWarning(UserWarning):
+    """A mesh whose size no human LV has (long axis, wall, cavity): most likely read in the wrong
+    length unit. The message names the sizes and the unit that would fit, in one line."""
+
+
 @dataclass(frozen=True)
 class TetMesh:
     """Linear tetrahedral mesh. nodes [n,3] in mm, tets [m,4] positively oriented;
@@ -220,6 +225,23 @@ def _check_surfaces(nodes: np.ndarray, endo: np.ndarray, epi: np.ndarray, base: 
         if pieces > 1:
             raise MeshError(f"the tagged {name} is {pieces} separate pieces; it must be one surface (are part of "
                             f"its triangles tagged as another surface?)")
+
+
+def lv_dimensions(mesh: TetMesh) -> dict:
+    """Sizes of an LV mesh that tell its length unit: {"long_axis_mm": extent along z (base to
+    apex), "wall_mm": mean distance from an endocardial node to the nearest epicardial node,
+    "cavity_ml": volume enclosed by the endocardium and the plane of its top, or None when that is
+    not positive (an open or odd endocardium)}."""
+    from scipy.spatial import cKDTree
+
+    nodes = mesh.nodes
+    endo, epi = mesh.endo_nodes(), mesh.epi_nodes()
+    wall = float(cKDTree(nodes[epi]).query(nodes[endo])[0].mean()) if endo.size and epi.size else None
+    tri = nodes[mesh.endo]
+    area_z = 0.5 * np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])[:, 2]
+    top = nodes[endo, 2].max() if endo.size else 0.0
+    cavity = float(-((tri[:, :, 2].mean(axis=1) - top) * area_z).sum()) / 1e3  # endo normals point into the cavity
+    return {"long_axis_mm": float(np.ptp(nodes[:, 2])), "wall_mm": wall, "cavity_ml": cavity if cavity > 0 else None}
 
 
 def make_mesh(nodes: np.ndarray, tets: np.ndarray, endo=None, epi=None, base=None, info=None) -> TetMesh:

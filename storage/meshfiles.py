@@ -22,9 +22,40 @@ def unit_scale(units: str) -> float:
         raise ValueError(f"unknown length unit {units!r}; choose mm, cm or m") from None
 
 
-def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
+# sizes a human LV at end-diastole can have, healthy or diseased (small hypertrophied to dilated)
+HUMAN_LV_RANGE = {"long_axis_mm": (30.0, 200.0), "wall_mm": (1.5, 40.0), "cavity_ml": (10.0, 1500.0)}
+_SIZE_WORDS = {"long_axis_mm": ("LV long axis", "mm"), "wall_mm": ("wall", "mm"), "cavity_ml": ("cavity", "mL")}
+_SIZE_POWER = {"long_axis_mm": 1, "wall_mm": 1, "cavity_ml": 3}
+
+
+def units_warning(mesh: TetMesh, units: str, name: str, hint: bool = True) -> str | None:
+    """One line when the mesh (read in `units`, now in mm) has sizes no human LV has, naming the
+    unit that would give human sizes ("…: this looks like cm; pass --units cm"), or None when its
+    sizes are plausible. hint: end with the --units to pass (False where the unit is fixed)."""
+    from solver.mesh import lv_dimensions
+
+    dims = {k: v for k, v in lv_dimensions(mesh).items() if v is not None}
+
+    def plausible(factor: float) -> bool:
+        return all(lo <= dims[k] * factor ** _SIZE_POWER[k] <= hi for k, (lo, hi) in HUMAN_LV_RANGE.items() if k in dims)
+
+    if plausible(1.0):
+        return None
+    sizes = ", ".join(f"{_SIZE_WORDS[k][0]} {v:.3g} {_SIZE_WORDS[k][1]}" for k, v in dims.items())
+    scale = unit_scale(units)
+    fits = [u for u in UNIT_TO_MM if u != units and plausible(UNIT_TO_MM[u] / scale)]
+    if len(fits) == 1:
+        return (f"{name}: {sizes} read in {units}: this looks like {fits[0]}"
+                + (f"; pass --units {fits[0]}" if hint else f", not {units}"))
+    ranges = ", ".join(f"{_SIZE_WORDS[k][0]} {lo:g}–{hi:g} {_SIZE_WORDS[k][1]}" for k, (lo, hi) in HUMAN_LV_RANGE.items())
+    return f"{name}: {sizes} read in {units}: outside a human LV's sizes ({ranges}); check the mesh's length unit"
+
+
+def read_mesh(path: str | os.PathLike, units: str = "mm", check_units: bool = True) -> TetMesh:
     """Read a linear tet mesh; coordinates converted to mm. Surfaces come from a `surface` triangle
-    tag (1 endo, 2 epi, 3 base) when present, otherwise they are found from the geometry."""
+    tag (1 endo, 2 epi, 3 base) when present, otherwise they are found from the geometry.
+    check_units: a MeshUnitsWarning (units_warning) when the sizes are no human LV's; its text is
+    kept in the mesh's info["units_warning"] too."""
     scale = unit_scale(units)
     path = Path(path)
     if not path.is_file():
@@ -40,7 +71,17 @@ def read_mesh(path: str | os.PathLike, units: str = "mm") -> TetMesh:
         raise MeshError(f"{path} has {unused.size} points that belong to no tetrahedron (e.g. point {unused[0]}); "
                         f"remove them, so that the output's nodes are the input's")
     surfaces = _tagged_surfaces(m, path)
-    return make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
+    mesh = make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
+    if check_units:
+        message = units_warning(mesh, units, path.name)
+        if message is not None:
+            import warnings
+
+            from solver.mesh import MeshUnitsWarning
+
+            mesh.info["units_warning"] = message
+            warnings.warn(message, MeshUnitsWarning, stacklevel=2)
+    return mesh
 
 
 def _check_indices(cells: np.ndarray, n_points: int, path, what: str) -> None:

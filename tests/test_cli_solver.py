@@ -379,3 +379,38 @@ def test_usage_errors_through_the_entry_point_are_one_line_and_exit_2(monkeypatc
     with pytest.raises(SystemExit) as exit_:
         main()
     assert exit_.value.code == 0 and "Usage" in capsys.readouterr().out
+
+
+def test_a_mesh_in_another_unit_draws_one_warning_naming_it(tmp_path, lv_file):
+    """A cm mesh read as mm (an LV 8 mm long) solves, with one warning line naming cm; the same file
+    with --units cm draws none."""
+    lv = read_mesh(lv_file)
+    cm_file = tmp_path / "lv_cm.vtu"
+    write_mesh(cm_file, lv, units="cm")
+    r = run("solve", cm_file, "--pressure", 8, "--stiffness", 150, "--fidelity", "fast", "-o", tmp_path / "a.vtu")
+    assert r.exit_code == 0, r.output
+    warnings = [line for line in r.output.splitlines() if "warning" in line]
+    assert len(warnings) == 1, r.output
+    assert warnings[0].startswith("heartctl: warning: lv_cm.vtu: LV long axis 8.")
+    assert warnings[0].endswith("this looks like cm; pass --units cm")
+    r = run("solve", cm_file, "--units", "cm", "--pressure", 8, "--stiffness", 150, "--fidelity", "fast",
+            "-o", tmp_path / "b.vtu")
+    assert r.exit_code == 0 and "warning" not in r.output, r.output
+
+
+def test_units_check_names_the_unit_that_fits(tmp_path, lv_file):
+    from solver.mesh import MeshUnitsWarning
+    from storage.meshfiles import units_warning
+
+    lv = read_mesh(lv_file)
+    assert units_warning(lv, "mm", "lv.vtu") is None and "units_warning" not in lv.info
+    with pytest.warns(MeshUnitsWarning, match=r"this looks like mm; pass --units mm$"):
+        mesh = read_mesh(lv_file, "cm")  # a mm mesh read as cm: 850 mm long
+    assert "looks like mm" in mesh.info["units_warning"]
+    metres = tmp_path / "lv_m.vtu"
+    write_mesh(metres, lv, units="m")
+    with pytest.warns(MeshUnitsWarning, match=r"this looks like m; pass --units m$"):
+        read_mesh(metres)
+    giant = lv.with_nodes(lv.nodes * 3.0)  # 250 mm long, 30 mm wall, ~3.5 L: no unit makes it a human LV
+    assert "outside a human LV's sizes" in units_warning(giant, "mm", "giant.vtu")
+    assert units_warning(giant, "mm", "giant.vtu", hint=False).count("--units") == 0

@@ -20,6 +20,7 @@ def test_generate_from_user_meshes_in_cm_and_resume(tmp_path):
             "--stiffness", "150", "--endo", "60", "--epi=-60", "--fidelity", "fast", "--num-cpus", "1"]
     r = CliRunner().invoke(app, args)
     assert r.exit_code == 0, r.output
+    assert "warning" not in r.output  # the unit given fits the meshes' sizes
     reader = PairReader(str(store))
     assert reader.attrs["shape_source"] == "files" and len(reader.attrs["meshes"]) == 2
     for i, m in enumerate(originals):
@@ -38,6 +39,20 @@ def test_generate_from_user_meshes_in_cm_and_resume(tmp_path):
     (folder / "patient1.vtu").unlink()
     other = CliRunner().invoke(app, args)
     assert other.exit_code == 2 and "--meshes" in other.output
+
+
+def test_generate_warns_of_meshes_in_another_unit(tmp_path):
+    """cm files without --units: one warning line per file, naming cm; the sweep is not refused."""
+    folder = tmp_path / "meshes"
+    folder.mkdir()
+    for i in range(2):
+        write_mesh(folder / f"patient{i}.vtu", mesh_lv(lv_shape(i), 150), units="cm")
+    r = CliRunner().invoke(app, ["generate", "--meshes", str(folder), "--store", str(tmp_path / "s.zarr"),
+                                 "--pressures", "8", "--stiffness", "150", "--fidelity", "fast", "--dry-run"])
+    assert r.exit_code == 0, r.output
+    warned = [line for line in r.output.splitlines() if line.startswith("heartctl: warning:")]
+    assert [w.split(":")[2].strip() for w in warned] == ["patient0.vtu", "patient1.vtu"], r.output
+    assert all(w.endswith("this looks like cm; pass --units cm") for w in warned)
 
 
 def test_generate_warns_of_a_pressure_beyond_end_diastole(tmp_path):

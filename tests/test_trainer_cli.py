@@ -502,6 +502,18 @@ def test_ensemble_warnings_speak_for_every_member(trained, tmp_path):
         assert any("pressure 12 is outside the training grid [4, 6]" in w for w in warnings), warnings
 
 
+def test_a_mesh_in_another_unit_draws_one_size_warning_with_the_network(trained, tmp_path):
+    """unload --method gnn on a cm mesh read as mm: the unit warning of the mesh reader, once, and not
+    the network's own size warning beside it."""
+    ed = tmp_path / "ed_cm.vtu"
+    write_mesh(ed, lv_mesh(0), units="cm")
+    r = run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", trained["run"],
+            "-o", tmp_path / "u.vtu")
+    assert r.exit_code == 0, r.output
+    warned = [ln for ln in r.output.splitlines() if "warning" in ln]
+    assert len(warned) == 1 and warned[0].endswith("this looks like cm; pass --units cm"), r.output
+
+
 def test_a_diverging_run_stops_and_keeps_its_last_good_checkpoint(trained, tmp_path):
     """A loss that turns non-finite is an error (exit 2), not a 'best' epoch: before, a NaN validation
     loss made the training loss the yardstick and the diverged weights the kept network, exit 0."""

@@ -265,7 +265,10 @@ def _each(pred: Predictor | Ensemble) -> list:
     return [(f"member {i + 1} ({m.cfg.config_name}): " if len(members) > 1 else "", m) for i, m in enumerate(members)]
 
 
-def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params) -> list:
+def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params, units_warned: bool = False) -> list:
+    """Inputs outside what the network was trained on. The mesh's length unit is checked once, where
+    it is read (storage.meshfiles.units_warning): `units_warned` (that check already warned) leaves
+    out the size warning here, which otherwise names a plausible LV the network extrapolates to."""
     out = []
     names = ("pressure", "stiffness", "endo angle", "epi angle")
     r = float(np.sqrt(((feat.ed_mm - feat.ed_mm.mean(axis=0)) ** 2).sum(axis=1).mean()))
@@ -273,9 +276,9 @@ def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params) -> list:
         for name, v, lo, hi in zip(names, params, m.norm.param_lo, m.norm.param_hi):
             if not lo - 1e-9 <= v <= hi + 1e-9:
                 out.append(f"{label}{name} {v:g} is outside the training grid [{lo:g}, {hi:g}]: the network extrapolates")
-        if not 0.5 <= r / m.norm.scale_mm <= 2.0:
+        if not units_warned and not 0.5 <= r / m.norm.scale_mm <= 2.0:
             out.append(f"{label}mesh size {r:.1f} mm (RMS radius) is far from the training meshes' "
-                       f"{m.norm.scale_mm:.1f} mm: check --units")
+                       f"{m.norm.scale_mm:.1f} mm: the network extrapolates")
     return out
 
 
@@ -295,13 +298,15 @@ def _model_warnings(pred: Predictor | Ensemble, asked: dict) -> list:
 
 def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: str = "accurate",
                         base: str = "sliding", tol_mm: float | None = None, device: str = "cpu",
-                        fibres: str = "laplace", asked: dict | None = None, rotations: int = 1) -> dict:
+                        fibres: str = "laplace", asked: dict | None = None, rotations: int = 1,
+                        max_updates: int | None = None) -> dict:
     """Unload an ED TetMesh (mm) at CaseParameters `params`.
 
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
     with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element).
     asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
     differ from the training store's draw a warning. rotations: test-time averaging (Predictor).
+    max_updates: hybrid only, stop after that many inverse updates from the guess (solver.lv.inverse_solve).
     run_dirs: one run directory, or several for an ensemble (their mean; Ensemble).
     Returns {"unloaded_nodes", "network_ms", "spread_mm" (per node, members' RMS disagreement, mm),
     "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
@@ -317,7 +322,8 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     first_ms = (time.perf_counter() - t) * 1e3
     net_ms = pred.time_ms_per_case([(feat, values, None)], 1, repeats=5, warmup=3)  # the model alone, warm
     guess = mesh.nodes + disp
-    out = {"network_ms": net_ms, "first_call_ms": first_ms, "warnings": _warnings(pred, feat, values),
+    out = {"network_ms": net_ms, "first_call_ms": first_ms,
+           "warnings": _warnings(pred, feat, values, units_warned="units_warning" in mesh.info),
            "run": pred.run_label, "members": len(pred.members), "spread_mm": spread,
            "with_response": pred.uses_response}
     if method == "gnn":
@@ -343,7 +349,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     t = time.perf_counter()
     try:
         result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess,
-                               tol_mm=tol_mm, fibres=fibres)
+                               tol_mm=tol_mm, fibres=fibres, max_updates=max_updates)
     except SolveError as exc:
         if fallback:
             raise
@@ -354,7 +360,8 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
                                f"{out['guess_attempt_s']:.1f} s ({reason}); it started again from the ED mesh")
         fallback = True
         try:
-            result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=tol_mm, fibres=fibres)
+            result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=tol_mm, fibres=fibres,
+                                   max_updates=max_updates)
         except SolveError as again:
             raise SolveError(f"{again} (from the network guess before: {reason})") from None
     out.update({"unloaded_nodes": result.unloaded_nodes, "inverse": result, "fallback": fallback,
