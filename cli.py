@@ -273,7 +273,7 @@ def _auto_method(run: list[Path], tolerance_mm: float, n_nodes: int, fidelity: F
     from trainer.trade import choose_method, load_trade
 
     choice = choose_method(load_trade(run[0]), tolerance_mm, n_nodes, with_ensemble=len(run) > 1)
-    typer.echo(f"auto: {choice['method']} (p95 {choice['p95_mm']:.3f} mm, max {choice['max_mm']:.3f} mm against the "
+    typer.echo(f"auto: {choice['label']} (p95 {choice['p95_mm']:.3f} mm, max {choice['max_mm']:.3f} mm against the "
                f"converged solution on the trade table's {choice['nodes']}-node held-out meshes, "
                f"{choice['time_mean_s']:.2f} s per case there; asked ≤ {tolerance_mm:g} mm)")
     preset = FidelityName(choice["preset"]) if choice["preset"] else fidelity
@@ -425,32 +425,48 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
 
 
 @bench_app.command("corners")
-def bench_corners(fidelity: FidelityName = typer.Option(FidelityName.fast, "--fidelity"),
-                  nodes: int = typer.Option(800, "--nodes", help="Target mesh node count."),
+def bench_corners(fidelity: list[FidelityName] = typer.Option(None, "--fidelity", help="Presets, repeatable (default fast and accurate)."),
+                  extended: bool = typer.Option(False, "--extended", help="The extended box too: P 2–30 mmHg, C 20–2,000 Pa, "
+                                                "θendo 40–80°, θepi −40…−80°."),
+                  nodes: int = typer.Option(None, "--nodes", help="Target mesh node count (default 800; with --extended 350)."),
                   base: Base = typer.Option(Base.sliding, "--base", help="Base condition: sliding (default) | clamped | spring | heartfem."),
                   fibres: str = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (default) | heartfem."),
+                  out: Path = typer.Option(None, "--out", help="Report folder: stability.md (the region table) and stability.json."),
                   as_json: bool = typer.Option(False, "--json")):
-    """Round trip solve(unload(x_ED)) at the 8 corners of the paper's box on the 3 extreme shapes."""
-    from solver.benchmark_solver import run_corner_benchmark
+    """Pairs (inverse, then forward from zero load) at the 16 corners of the paper's box, and with
+    --extended of a wider one, on the 3 extreme shapes: converged or why, cutbacks, Newton iterations,
+    inverse updates, min det F, max Fung exponent Q (headroom before e^Q overflows), round trip, time."""
+    from solver.stability import EXTENDED_BOX, PAPER_BOX, format_row, region_table, run_stability
 
+    presets = [f.value for f in fidelity] if fidelity else ["fast", "accurate"]
     try:
         _check_fibres(fibres)
-        rows = run_corner_benchmark(fidelity.value, nodes, base.value, fibres)
+        if "reference" in presets:
+            raise ValueError("--fidelity reference is not a stability target (it is accurate on a refined mesh)")
+        nodes = nodes or (350 if extended else 800)
+        echo = (lambda r: typer.echo(json_line(r))) if as_json else (lambda r: typer.echo(format_row(r)))
+        rows = []
+        for box in (PAPER_BOX, EXTENDED_BOX) if extended else (PAPER_BOX,):
+            rows += run_stability(presets, box, nodes, base.value, fibres, progress=echo)
     except _input_errors() as exc:
         fail(str(exc))
-    for r in rows:
-        if as_json:
-            typer.echo(json_line(r))
-        elif r["ok"]:
-            typer.echo(f"shape {r['shape']:>2} P={r['pressure_mmhg']:>4g} C={r['stiffness_pa']:>3g} θ=±{r['helix_deg']:g}: "
-                       f"round trip {r['roundtrip_mm']:.1e} mm, {r['newton']} Newton, min J {r['min_jacobian']:.3f}, {r['wall_s']:.1f} s")
-        else:
-            typer.echo(f"shape {r['shape']:>2} P={r['pressure_mmhg']:>4g} C={r['stiffness_pa']:>3g} θ=±{r['helix_deg']:g}: FAILED {r['reason']}")
-    ok = [r for r in rows if r["ok"]]
-    worst = max((r["roundtrip_mm"] for r in ok), default=float("nan"))
-    typer.echo(f"{fidelity.value}, base {base.value}, {fibres} fibres: {len(ok)}/{len(rows)} corners converged; "
-               f"worst round trip {worst:.1e} mm "
-               f"(goal ≤ 1e-3 mm); {sum(r['wall_s'] for r in rows):.0f} s in all")
+    for box in sorted({r["box"] for r in rows}):
+        for preset in presets:
+            rs = [r for r in rows if r["box"] == box and r["preset"] == preset]
+            ok = [r for r in rs if r["ok"]]
+            bad = sum(1 for r in rs if "finite" in r and not r["finite"])
+            typer.echo(f"{box} box, {preset}: {len(ok)}/{len(rs)} converged, worst round trip "
+                       f"{max((r['roundtrip_mm'] for r in ok), default=float('nan')):.1e} mm, min J "
+                       f"{min((r['min_jacobian'] for r in ok), default=float('nan')):.3f}, max Q "
+                       f"{max((r['q_max'] for r in ok), default=float('nan')):.1f}, {bad} non-finite answers, "
+                       f"{sum(r['wall_s'] for r in rs):.0f} s")
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        header = (f"# heartctl bench corners\n\n{_machine_line(1)}; {base.value} base, {fibres} fibres, ~{nodes}-node "
+                  f"meshes.\n\nCommand: `heartctl {' '.join(sys.argv[1:])}`\n\n")
+        (out / "stability.md").write_text(header + region_table(rows))
+        (out / "stability.json").write_text(json.dumps(rows, indent=1))
+        typer.echo(f"report: {out / 'stability.md'}")
 
 
 def _machine_line(threads: int) -> str:
@@ -705,6 +721,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           device: str = typer.Option(None, "--device", help="With --no-ray: cpu | cuda (default cuda when available)."),
           workers: int = typer.Option(2, "--workers", help="CPU workers when --gpus 0."),
           address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT (default: a local Ray)."),
+          connect_timeout: float = typer.Option(None, "--connect-timeout", help="With --address: seconds to wait for the cluster before giving up (default 30)."),
           max_failures: int = typer.Option(2, "--max-failures", help="Restarts from the last checkpoint after a worker dies."),
           lr: float = typer.Option(1e-3, "--lr", help="AdamW learning rate."),
           patience: int = typer.Option(50, "--patience", help="Early stopping: epochs without a better validation loss."),
@@ -731,6 +748,7 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                "are required")
         if device not in (None, "cpu", "cuda"):
             raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+        _check_connect_timeout(connect_timeout, address)
         parse_split(split)
         from storage.store import is_url
 
@@ -785,9 +803,11 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
 
         from trainer.ray_train import LOCAL_RAY_TRAIN_ENV, NO_DASHBOARD_SETUP_HOOK, train_with_ray
 
+        from orchestrator.sweep import CONNECT_TIMEOUT_S, RayConnectError, join_ray
+
         try:
             if address:
-                ray.init(address=address)
+                join_ray(address, connect_timeout or CONNECT_TIMEOUT_S)
             elif not ray.is_initialized():
                 from orchestrator.sweep import WORKER_NICENESS, start_local_ray
 
@@ -801,6 +821,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
             if not gpus and not address and cpus < workers:  # Ray Train would wait for them for ever
                 raise TrainerError(f"--workers {workers}: the local Ray has {cpus:g} CPUs; use --workers {int(cpus)} "
                                    f"or fewer (one CPU each), or join a larger cluster with --address")
+        except RayConnectError as exc:
+            fail(str(exc))
         except (ConnectionError, RuntimeError, TrainerError) as exc:
             ray.shutdown()
             fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0]}")
@@ -1165,6 +1187,16 @@ def _print_learning_curve(result: dict, root: Path) -> None:
 # --- data generation ---
 
 
+def _check_connect_timeout(seconds: float | None, address: str | None) -> None:
+    """ValueError unless --connect-timeout is a finite number > 0 given with --address."""
+    if seconds is None:
+        return
+    if address is None:
+        raise ValueError("--connect-timeout applies to --address (joining a cluster); a local Ray starts here")
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"--connect-timeout must be a finite number of seconds > 0, got {seconds:g}")
+
+
 def _store_errors():
     from storage.store import StoreError
 
@@ -1186,6 +1218,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              meshes: str = typer.Option(None, "--meshes", help="Use your ED meshes as the shape set: a folder or a glob of mesh files (any meshio format; readable by every worker)."),
              units: Units = typer.Option(None, "--units", help="Length unit of the --meshes files (default mm)."),
              address: str = typer.Option(None, "--address", help="Join a Ray cluster: auto | HOST:PORT (default: start a local Ray on all cores)."),
+             connect_timeout: float = typer.Option(None, "--connect-timeout", help="With --address: seconds to wait for the cluster before giving up (default 30)."),
              num_cpus: int = typer.Option(None, "--num-cpus", help="CPUs of the local Ray (default: all cores; --local 2)."),
              local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
              dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cases, core-hours from a calibration solve) and exit."),
@@ -1210,6 +1243,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             raise ValueError("--local starts its own two-core Ray; it does not take --address")
         if address is not None and num_cpus is not None:
             raise ValueError("--num-cpus sizes a local Ray; a cluster joined with --address has its own CPUs")
+        _check_connect_timeout(connect_timeout, address)
         explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes, "base": base, "fibres": fibres,
                     "mesh_units": units.value if units is not None else None}
         if meshes is not None:
@@ -1246,7 +1280,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             return
         _print_plan(plan)
         return
-    from orchestrator.sweep import init_ray, run_sweep
+    from orchestrator.sweep import CONNECT_TIMEOUT_S, RayConnectError, init_ray, run_sweep
 
     if left is not None and not retry_damaged:  # damage is found by reading every case, in the sweep
         if left["to_run"] == 0:
@@ -1260,7 +1294,10 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
                        + (" (--retry-failed reruns the failed ones)" if left["failed"] else ""))
             return
     try:
-        init_ray(address=address, num_cpus=num_cpus or (2 if local else None), local=local)
+        init_ray(address=address, num_cpus=num_cpus or (2 if local else None), local=local,
+                 connect_timeout_s=connect_timeout or CONNECT_TIMEOUT_S)
+    except RayConnectError as exc:
+        fail(str(exc))
     except (ConnectionError, ValueError, RuntimeError) as exc:
         fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}")
     stop_on_sigterm()  # after ray.init, whose driver installs its own handler

@@ -42,35 +42,3 @@ def run_solver_benchmark(presets: list[str], nodes: int = 1000, shape: int = 0) 
                 "inverse_updates": s["inverse_updates"], "roundtrip_mm": s["roundtrip_error_mm"],
             })
     return rows
-
-
-def corner_cases() -> list[CaseParameters]:
-    """The corners of the paper's box: P 4/14 mmHg × C 50/300 Pa × helix ±60/±70°."""
-    return [CaseParameters(p, c, th, -th) for p in (4.0, 14.0) for c in (50.0, 300.0) for th in (60.0, 70.0)]
-
-
-def run_corner_benchmark(preset: str, nodes: int = 800, base: str = "sliding", fibres: str = "laplace") -> list[dict]:
-    """Inverse round trip solve(unload(x_ED)) — the forward from zero load with load stepping —
-    at every corner of the box on the three most extreme shapes (±2 SD and a mixed corner), with the
-    given base condition and fibre rule."""
-    from .forward import SolveError
-    from .shape_model import extreme_shapes
-
-    rows = []
-    for shape in extreme_shapes():
-        mesh = mesh_lv(shape, nodes)
-        for params in corner_cases():
-            t0 = time.perf_counter()
-            row = {"fidelity": preset, "base": base, "fibres": fibres, "shape": shape.shape_id, "nodes": mesh.n_nodes,
-                   "pressure_mmhg": params.pressure_mmhg, "stiffness_pa": params.stiffness_pa,
-                   "helix_deg": params.helix_endo_deg}
-            try:
-                pair = make_pair(mesh, params, preset, base, forward_from_scratch=True, fibres=fibres)
-                row.update(ok=True, roundtrip_mm=pair.stats["roundtrip_error_mm"],
-                           newton=pair.stats["inverse_newton_iterations"] + pair.stats["forward_newton_iterations"],
-                           min_jacobian=pair.stats["min_jacobian"])
-            except SolveError as exc:
-                row.update(ok=False, reason=str(exc))
-            row["wall_s"] = time.perf_counter() - t0
-            rows.append(row)
-    return rows

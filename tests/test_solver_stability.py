@@ -1,0 +1,44 @@
+"""Stability past the paper's box: the hardest corner of the extended box that converges (softest wall,
+highest pressure, the most extreme shape) on a coarse mesh, with both presets, and a case beyond it
+that must fail with its reason and no answer."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from solver.meshing import mesh_lv
+from solver.parameters import CaseParameters
+from solver.shape_model import extreme_shapes
+from solver.stability import EXTENDED_BOX, PAPER_BOX, Q_OVERFLOW, region_table, stability_case
+
+
+@pytest.fixture(scope="module")
+def extreme_mesh():
+    return mesh_lv(extreme_shapes()[0], 200)  # every mode at −2 SD: small, spherical, thin
+
+
+def test_corners_hardest_first():
+    corners = EXTENDED_BOX.corners()
+    assert len(corners) == 16 and len(set(corners)) == 16
+    assert (corners[0].pressure_mmhg, corners[0].stiffness_pa) == (30.0, 20.0)
+    assert (corners[-1].pressure_mmhg, corners[-1].stiffness_pa) == (2.0, 2000.0)
+    assert {p.helix_endo_deg for p in PAPER_BOX.corners()} == {60.0, 70.0}
+
+
+@pytest.mark.parametrize("preset", ["fast", "accurate"])
+def test_hardest_extended_corner_converges(extreme_mesh, preset):
+    row = stability_case(extreme_mesh, CaseParameters(30.0, 20.0, 80.0, -80.0), preset)
+    assert row["ok"], row
+    assert row["finite"] and row["roundtrip_mm"] <= 1e-3 and row["min_jacobian"] > 0
+    assert 0 < row["q_max"] < Q_OVERFLOW and row["q_headroom"] > 600
+    assert row["step_cuts"] > 0  # this load needs its steps cut back: the path is exercised
+    table = region_table([dict(row, box="extended", shape="all −2 SD")])
+    assert "| extended | 30 | 20 | " + preset + " | 1/1 |" in table
+
+
+def test_beyond_the_box_fails_with_its_reason(extreme_mesh):
+    row = stability_case(extreme_mesh, CaseParameters(40.0, 5.0, 80.0, -80.0), "fast")
+    assert not row["ok"] and "roundtrip_mm" not in row and "unloaded" not in row
+    assert "step size collapsed" in row["reason"] and math.isfinite(row["wall_s"])
+    assert "0/1" in region_table([dict(row, box="extended", shape="all −2 SD")])
