@@ -181,10 +181,117 @@ def start_local_ray(**kwargs):
     return ray.init(**kwargs)
 
 
-def init_ray(address: str | None = None, num_cpus: int | None = None, local: bool = False, quiet: bool = True):
+CONNECT_TIMEOUT_S = 30.0  # joining an existing cluster (--address): then one line, not Ray's retries for minutes
+
+
+class RayConnectError(ConnectionError):
+    """No Ray cluster answered at the address given; the message names it, in one line."""
+
+
+def _gcs_host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of a Ray address (HOST:PORT, ray://HOST:PORT, or auto → the running cluster's),
+    or None when it cannot be told (auto with no cluster recorded: ray.init says so itself)."""
+    if address == "auto":
+        try:
+            from ray._private.services import canonicalize_bootstrap_address
+
+            address = canonicalize_bootstrap_address("auto") or ""
+        except Exception:
+            return None
+    address = address.split("://", 1)[-1]
+    host, sep, port = address.rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    return host.strip("[]"), int(port)
+
+
+def _auth_hint(text: str) -> str:
+    """A pointer to Ray's token when Ray's error or log speaks of authentication."""
+    words = text.lower()
+    if "token" in words or "authenticat" in words:
+        return ("; Ray says the authentication token is missing or wrong: set RAY_AUTH_MODE=token and the "
+                "head's token (`ray get-auth-token` there) in RAY_AUTH_TOKEN or ~/.ray/auth_token")
+    return ""
+
+
+def not_sigterm_notice(record) -> bool:
+    return "SIGTERM handler is not set" not in str(record.msg)
+
+
+def join_ray(address: str, timeout_s: float = CONNECT_TIMEOUT_S, **kwargs):
+    """ray.init(address=…) of an existing cluster, time-boxed: RayConnectError (one line naming the
+    address) when nothing listens there, or when Ray has not connected within timeout_s. The port is
+    probed first (a refused or unreachable port fails at once); ray.init then runs in a helper thread
+    so that a port that accepts but never answers as Ray does not hang the command."""
+    import threading
+
+    import ray
+
+    if not timeout_s > 0:
+        raise ValueError(f"--connect-timeout must be > 0 s, got {timeout_s}")
+    start = time.monotonic()
+    target = _gcs_host_port(address)
+    if target is not None:
+        try:
+            socket.create_connection(target, timeout=timeout_s).close()
+        except OSError as exc:
+            why = "timed out" if isinstance(exc, socket.timeout) else (exc.strerror or type(exc).__name__).lower()
+            where = "" if address == f"{target[0]}:{target[1]}" else f"{target[0]}:{target[1]}: "
+            raise RayConnectError(f"no Ray cluster answers at {address} ({where}{why}"
+                                  f"{f' after {timeout_s:g} s' if why == 'timed out' else ''}); start it with "
+                                  f"`ray start --head` or check HOST:PORT") from None
+    outcome: dict = {}
+
+    def connect():
+        try:
+            outcome["context"] = ray.init(address=address, **kwargs)
+        except BaseException as exc:  # handed to the caller's thread
+            outcome["error"] = exc
+
+    import logging
+    import tempfile
+
+    worker_log = logging.getLogger("ray._private.worker")  # says a helper thread sets no SIGTERM handler: the CLI sets its own
+    if not_sigterm_notice not in worker_log.filters:
+        worker_log.addFilter(not_sigterm_notice)
+    # Ray's C++ client logs each failed attempt on stderr (a line a second for ~20 s, the reason among
+    # them: an authentication token missing or wrong) before ray.init gives up. While it tries, stderr
+    # goes to a file: on success its lines are passed on, on failure read for the reason of one line.
+    captured = tempfile.TemporaryFile()
+    sys.stderr.flush()
+    saved_fd = os.dup(2)
+    os.dup2(captured.fileno(), 2)
+    thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
+    try:
+        thread.start()
+        thread.join(max(timeout_s - (time.monotonic() - start), 0.1))
+    finally:
+        sys.stderr.flush()
+        os.dup2(saved_fd, 2)
+        os.close(saved_fd)
+    captured.seek(0)
+    said = captured.read().decode(errors="replace")
+    captured.close()
+    if thread.is_alive():
+        raise RayConnectError(f"Ray at {address} did not connect within {timeout_s:g} s (is it a Ray head's GCS port, "
+                              f"and this machine's Ray the same version?){_auth_hint(said)}; raise --connect-timeout "
+                              f"if it is slow")
+    if "error" in outcome:
+        exc = outcome["error"]
+        text = str(exc).strip()
+        first = text.splitlines()[0] if text else type(exc).__name__
+        raise RayConnectError(f"cannot join Ray at {address}: {first}{_auth_hint(text + said)}") from None
+    if said:
+        sys.stderr.write(said)
+    return outcome["context"]
+
+
+def init_ray(address: str | None = None, num_cpus: int | None = None, local: bool = False, quiet: bool = True,
+             connect_timeout_s: float = CONNECT_TIMEOUT_S):
     """Start (or join, with `address`) Ray. A local Ray's dashboard listens on 127.0.0.1 only;
     in --local mode there is no dashboard at all. Worker BLAS/MKL run single-threaded. A local Ray's
-    workers run at WORKER_NICENESS (a joined cluster keeps its own setting)."""
+    workers run at WORKER_NICENESS (a joined cluster keeps its own setting). Joining is time-boxed
+    (join_ray, connect_timeout_s)."""
     import logging
 
     import ray
@@ -194,7 +301,7 @@ def init_ray(address: str | None = None, num_cpus: int | None = None, local: boo
     kwargs = dict(runtime_env={"env_vars": dict(THREAD_ENV)}, logging_level=logging.WARNING if quiet else logging.INFO,
                   log_to_driver=not quiet, configure_logging=True)
     if address:
-        return ray.init(address=address, **kwargs)
+        return join_ray(address, connect_timeout_s, **kwargs)
     kwargs["_system_config"] = {"worker_niceness": WORKER_NICENESS}
     if local:
         return start_local_ray(num_cpus=num_cpus or 2, include_dashboard=False, **kwargs)
