@@ -10,6 +10,7 @@ never resubmitted.
 """
 from __future__ import annotations
 
+import errno
 import os
 import socket
 import sys
@@ -34,6 +35,42 @@ WORKER_NICENESS = 0
 
 class SweepConflict(ValueError):
     """The request conflicts with the store it would resume."""
+
+
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+class StoreFullError(RuntimeError):
+    """The store's disk (or quota) filled up during a sweep. Cases marked done before are intact (a
+    case is marked only after its chunks were written and read back; local writes are atomic), so
+    rerunning the same command after freeing space resumes. The message is one line."""
+
+    def __init__(self, location: str, written: int | None):
+        self.location, self.written = location, written
+        cases = f"the {written} cases written are intact" if written is not None else "the cases marked done are intact"
+        super().__init__(f"disk full writing {location}; {cases}, free space and rerun the same command to resume")
+
+
+def _is_disk_full(exc: BaseException) -> bool:
+    """Whether exc, or an exception it was raised from, is an OSError ENOSPC or EDQUOT."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _cases_on_disk(location: str) -> int | None:
+    """Done cases as the store on disk records them (what a rerun finds), or None if it cannot be read."""
+    from storage.store import PairReader, remove_partial_files
+
+    try:
+        remove_partial_files(location)  # a write cut short leaves its temporary file: give the space back
+        return len(PairReader(location).done_cases())
+    except Exception:
+        return None
 
 
 @dataclass
@@ -382,21 +419,27 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     from the chain's lower pressures; `chain_length` 1 makes every pair its own task.
     `max_in_flight` counts tasks (default: InFlightLimit, twice the cluster's CPUs as nodes join).
     `retry_damaged`: first read every done case back and mark those whose chunks are damaged
-    (checksum mismatch) pending, so that they are recomputed."""
+    (checksum mismatch) pending, so that they are recomputed. A full disk (ENOSPC, EDQUOT) while
+    writing the store raises StoreFullError (one line; the cases already written are intact)."""
     import ray
 
     if not ray.is_initialized():
         raise RuntimeError("run_sweep needs Ray: call init_ray() first")
     t_start = time.perf_counter()
-    store, lock = open_or_create(spec, location)
     try:
-        damaged = store.reset_damaged([s for s in range(spec.shapes) if store.shape_ready(s)]) if retry_damaged else []
-        report = _run(spec, store, max_in_flight, retry_failed, progress, on_event, console, warm_start, chain_length,
-                      t_start)
-        report.damaged_reset = [(s, k) for s, k, _ in damaged]
-        return report
-    finally:
-        lock.release()
+        store, lock = open_or_create(spec, location)
+        try:
+            damaged = store.reset_damaged([s for s in range(spec.shapes) if store.shape_ready(s)]) if retry_damaged else []
+            report = _run(spec, store, max_in_flight, retry_failed, progress, on_event, console, warm_start,
+                          chain_length, t_start)
+            report.damaged_reset = [(s, k) for s, k, _ in damaged]
+            return report
+        finally:
+            lock.release()
+    except Exception as exc:
+        if not _is_disk_full(exc):
+            raise
+        raise StoreFullError(str(location), _cases_on_disk(location)) from None
 
 
 def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progress, on_event, console, warm_start,
