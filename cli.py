@@ -562,13 +562,14 @@ def import_l2u_cmd(folder: Path = typer.Argument(..., metavar="DIR", help="Folde
     from storage.store import StoreError
 
     try:
-        report = import_l2u(folder, store)
+        with _warnings_as_lines():
+            report = import_l2u(folder, store)
     except (StoreError, ValueError, FileNotFoundError) as exc:
         fail(str(exc))
     typer.echo(f"{store}: imported {report.imported} pairs of {report.shapes} shapes "
                f"({report.found_files} files, {report.pairs} matched pairs, {report.n_skipped} skipped)")
-    for reason, names in sorted(report.skipped.items()):
-        typer.echo(f"  skipped {len(names)}: {reason} (e.g. {names[0]})")
+    for name, reason in report.skipped_files():
+        typer.echo(f"  skipped {name}: {reason}")
 
 
 @bench_app.command("l2u")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import warnings
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +52,16 @@ class ImportReport:
     @property
     def n_skipped(self) -> int:
         return sum(len(v) for v in self.skipped.values())
+
+    def skipped_files(self) -> list[tuple[str, str]]:
+        """(file name, reason) of every skipped file, by name."""
+        return sorted((name, reason) for reason, names in self.skipped.items() for name in names)
+
+    def nothing_imported(self, root) -> str:
+        """The one line of an import that found no usable pair, with the first skipped file's reason."""
+        files = self.skipped_files()
+        first = f": {files[0][0]}: {files[0][1]}" + (", …" if len(files) > 1 else "") if files else ""
+        return f"no pair could be imported from {root} ({len(files)} files skipped{first})"
 
 
 def _split_of(path: Path, root: Path) -> str | None:
@@ -104,10 +115,14 @@ def _read(path: Path):
 
 def import_l2u(root, location, progress=None) -> ImportReport:
     """Write every readable, topology-consistent pair under root as a done case of a new store.
-    The store is built beside its final place and renamed into it at the end (local paths), so
-    an interrupted import leaves nothing behind. Raises StoreError if no pair could be imported."""
-    from solver.mesh import MeshError, make_mesh
+    A shape's mesh comes from the first of its pairs whose ED geometry is a valid mesh (pairs before
+    it are skipped with the reason). The store is built beside its final place and renamed into it
+    at the end (local paths), so an interrupted import leaves nothing behind. Raises StoreError if
+    no pair could be imported; a shape whose sizes are no human LV's in cm draws a MeshUnitsWarning."""
+    from solver.mesh import MeshError, MeshUnitsWarning
     from solver.shape_model import MODES
+
+    from .meshfiles import units_warning
 
     report = ImportReport()
     if inspect_store(location) is not None or (not is_url(location) and Path(location).exists()):
@@ -141,15 +156,20 @@ def import_l2u(root, location, progress=None) -> ImportReport:
             shapes[shape] = (ref_tets, data)
         if progress:
             progress(shape)
-    usable = []  # (source shape, mesh, pairs): a shape whose mesh is unusable gets no id
+    usable = []  # (source shape, mesh, pairs): a shape none of whose ED meshes is usable gets no id
     for shape, (tets, data) in sorted(shapes.items()):
-        try:
-            usable.append((shape, make_mesh(data[0][1], tets), data))
-        except MeshError as exc:
-            for pair, _, _ in data:
-                report.skip(f"shape mesh unusable: {exc}", pair.ed_path.name)
+        mesh, tried = _shape_mesh(data, tets)
+        for pair, reason in tried:  # pairs whose own ED mesh is unusable (a NaN, a folded tet …)
+            report.skip(f"ED mesh unusable: {reason}", pair.ed_path.name)
+        data = data[len(tried):]
+        if mesh is None:
+            continue
+        warning = units_warning(mesh, "cm", f"source shape {shape} ({data[0][0].ed_path.name})", hint=False)
+        if warning is not None:
+            warnings.warn(warning, MeshUnitsWarning, stacklevel=2)
+        usable.append((shape, mesh, data))
     if not usable:
-        raise StoreError(f"no pair could be imported from {root} ({report.n_skipped} files skipped)")
+        raise StoreError(report.nothing_imported(root))
     axes = [sorted({d[0].params[i] for _, data in shapes.values() for d in data}) for i in range(4)]
     grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(4, -1).T
     index = {tuple(row): k for k, row in enumerate(grid.tolist())}
@@ -195,7 +215,7 @@ def import_l2u(root, location, progress=None) -> ImportReport:
             store.flush()
             report.shapes += 1
         if report.imported == 0:
-            raise StoreError(f"no pair could be imported from {root} ({report.n_skipped} files skipped)")
+            raise StoreError(report.nothing_imported(root))
         if staging != final:
             os.replace(staging, final)
     except BaseException:
@@ -203,6 +223,20 @@ def import_l2u(root, location, progress=None) -> ImportReport:
             shutil.rmtree(staging, ignore_errors=True)
         raise
     return report
+
+
+def _shape_mesh(data: list, tets: np.ndarray) -> tuple:
+    """(the shape's mesh from the first pair whose ED geometry makes a valid mesh, or None;
+    [(pair, reason)] of the pairs tried before it, each unusable)."""
+    from solver.mesh import MeshError, make_mesh
+
+    tried = []
+    for pair, ed, _ in data:
+        try:
+            return make_mesh(ed, tets), tried
+        except MeshError as exc:
+            tried.append((pair, str(exc)))
+    return None, tried
 
 
 def _min_jacobian(unloaded: np.ndarray, ed: np.ndarray, tets: np.ndarray) -> float:

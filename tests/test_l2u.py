@@ -93,6 +93,41 @@ def test_garbage_files_and_impossible_parameters_are_skipped(source, tmp_path):
     assert sorted(tuple(reader.case_params(s)[k][:2]) for s, k in done) == [(10.0, 50.0), (10.0, 150.0), (10.0, 300.0)]
 
 
+def test_a_bad_first_file_of_a_shape_skips_that_pair_only(source, tmp_path):
+    """The shape's first pair has a NaN in its ED mesh: the shape's mesh comes from its next valid
+    pair, the bad pair is skipped, and every skipped file is printed with its reason, one a line."""
+    root = tmp_path / "nan_first"
+    shutil.copytree(source, root)
+    first = root / "test" / "ED" / "ED59_6_300_60_60.vtu"  # (P, C) sort first in shape 59
+    m = meshio.read(first)
+    m.points[5, 2] = np.nan
+    meshio.write(first, m)
+    (root / "test" / "ED" / "ED59_garbage.vtu").write_text("x")
+    out = tmp_path / "s.zarr"
+    r = runner.invoke(app, ["import-l2u", str(root), "--store", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "imported 3 pairs of 1 shapes" in r.output and "2 skipped" in r.output
+    skipped = [ln.strip() for ln in r.output.splitlines() if ln.strip().startswith("skipped")]
+    assert skipped == ["skipped ED59_6_300_60_60.vtu: ED mesh unusable: mesh has NaN or infinite node coordinates",
+                       "skipped ED59_garbage.vtu: malformed name"], r.output
+    reader = PairReader(str(out))
+    assert len(reader.done_cases()) == 3 and np.all(np.isfinite(reader.mesh(0).nodes))
+
+
+def test_nothing_importable_names_a_skipped_file(source, tmp_path):
+    root = tmp_path / "all_nan"
+    (root / "ED").mkdir(parents=True)
+    (root / "unloaded").mkdir()
+    for kind in ("ED", "unloaded"):
+        shutil.copy(FIXTURES / f"{kind}59_10_150_60_60.vtu", root / kind)
+    m = meshio.read(root / "ED" / "ED59_10_150_60_60.vtu")
+    m.points[0, 0] = np.inf
+    meshio.write(root / "ED" / "ED59_10_150_60_60.vtu", m)
+    r = runner.invoke(app, ["import-l2u", str(root), "--store", str(tmp_path / "x.zarr")])
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert "1 files skipped: ED59_10_150_60_60.vtu: ED mesh unusable: mesh has NaN or infinite" in r.output
+
+
 def test_nothing_importable_exits_2_and_leaves_nothing(tmp_path):
     empty = tmp_path / "empty"
     (empty / "ED").mkdir(parents=True)
