@@ -106,11 +106,14 @@ def find_pairs(root: str | os.PathLike, report: ImportReport) -> list[SourcePair
 
 
 def _read(path: Path):
-    """(points mm, tets) of one source file; MeshError when it is unreadable or not all linear tets."""
-    from .meshfiles import linear_tets, read_meshio
+    """(points mm, tets) of one source file; MeshError when it is unreadable, not all linear tets, or
+    has a point in no tet."""
+    from .meshfiles import check_points_used, linear_tets, read_meshio
 
     m = read_meshio(path)
-    return np.asarray(m.points, dtype=float) * CM_TO_MM, linear_tets(m, path)
+    tets = linear_tets(m, path)
+    check_points_used(tets, len(m.points), path.name)
+    return np.asarray(m.points, dtype=float) * CM_TO_MM, tets
 
 
 def import_l2u(root, location, progress=None) -> ImportReport:
@@ -136,11 +139,16 @@ def import_l2u(root, location, progress=None) -> ImportReport:
     for shape, group in sorted(by_shape.items()):
         ref_tets, data = None, []
         for pair in group:
+            reading = pair.ed_path
             try:
-                ed, tets = _read(pair.ed_path)
-                un, tets_u = _read(pair.unloaded_path)
-            except MeshError as exc:  # a corrupt file, or cells other than linear tets
-                report.skip("unreadable" if "cannot read" in str(exc) else "not linear tetrahedra only",
+                ed, tets = _read(reading)
+                reading = pair.unloaded_path
+                un, tets_u = _read(reading)
+            except MeshError as exc:  # a corrupt file, cells other than linear tets, a point in no tet
+                text = str(exc)
+                reason = ("unreadable" if "cannot read" in text else
+                          "points in no tetrahedron" if "belong to no tetrahedron" in text else "not linear tetrahedra only")
+                report.skip(reason if reading == pair.ed_path else f"{reason} (its partner {reading.name})",
                             pair.ed_path.name)
                 continue
             if ed.shape != un.shape or not np.array_equal(tets, tets_u):

@@ -66,10 +66,7 @@ def read_mesh(path: str | os.PathLike, units: str = "mm", check_units: bool = Tr
     if points.ndim != 2 or points.shape[1] != 3:
         raise MeshError(f"{path} must have 3-D points")
     _check_indices(tets, points.shape[0], path, "tetrahedra")
-    unused = np.setdiff1d(np.arange(points.shape[0]), tets)
-    if unused.size:  # dropping them would renumber the nodes: the answer would not match the input's
-        raise MeshError(f"{path} has {unused.size} points that belong to no tetrahedron (e.g. point {unused[0]}); "
-                        f"remove them, so that the output's nodes are the input's")
+    check_points_used(tets, points.shape[0], path)
     surfaces = _tagged_surfaces(m, path)
     mesh = make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
     if check_units:
@@ -82,6 +79,15 @@ def read_mesh(path: str | os.PathLike, units: str = "mm", check_units: bool = Tr
             mesh.info["units_warning"] = message
             warnings.warn(message, MeshUnitsWarning, stacklevel=2)
     return mesh
+
+
+def check_points_used(tets: np.ndarray, n_points: int, path) -> None:
+    """MeshError when a point belongs to no tetrahedron. Such a point has no stiffness, and dropping
+    it would renumber the nodes, so that the output's nodes and point data would not be the input's."""
+    unused = np.setdiff1d(np.arange(n_points), tets)
+    if unused.size:
+        raise MeshError(f"{path} has {unused.size} points that belong to no tetrahedron (e.g. point {unused[0]}); "
+                        f"remove them, so that the output's nodes are the input's")
 
 
 def _check_indices(cells: np.ndarray, n_points: int, path, what: str) -> None:

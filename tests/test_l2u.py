@@ -114,6 +114,19 @@ def test_a_bad_first_file_of_a_shape_skips_that_pair_only(source, tmp_path):
     assert len(reader.done_cases()) == 3 and np.all(np.isfinite(reader.mesh(0).nodes))
 
 
+def test_a_point_in_no_tet_skips_the_pair(source, tmp_path):
+    """As for the mesh files heartctl reads: an unused point would be a node without stiffness."""
+    root = tmp_path / "unused"
+    shutil.copytree(source, root)
+    path = root / "test" / "unloaded" / "unloaded59_10_50_70_70.vtu"
+    m = meshio.read(path)
+    meshio.write(path, meshio.Mesh(np.vstack([m.points, [[0.0, 0.0, 9.0]]]), m.cells))
+    r = runner.invoke(app, ["import-l2u", str(root), "--store", str(tmp_path / "s.zarr")])
+    assert r.exit_code == 0, r.output
+    assert "imported 3 pairs" in r.output and ("skipped ED59_10_50_70_70.vtu: points in no tetrahedron (its partner "
+                                                 "unloaded59_10_50_70_70.vtu)") in r.output
+
+
 def test_nothing_importable_names_a_skipped_file(source, tmp_path):
     root = tmp_path / "all_nan"
     (root / "ED").mkdir(parents=True)
