@@ -576,7 +576,7 @@ def import_l2u_cmd(folder: Path = typer.Argument(..., metavar="DIR", help="Folde
 def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by import-l2u."),
               fidelity: FidelityName = FidelityOpt,
               base: Base = typer.Option(Base.heartfem, "--base", help="heartfem (default) follows their pipeline: base z fixed, epicardial spring, rigid motions removed by ∫u = 0 and ∫X×u = 0; spring: the same with our base gauge."),
-              limit: int = typer.Option(None, "--limit", help="Check only the first N pairs."),
+              limit: int = typer.Option(None, "--limit", help="Check only the first N pairs (N ≥ 1; default all)."),
               stiffness_factor: float = typer.Option(2.0, "--stiffness-factor", help="Multiply their C: 2 (default) because heartFEM writes W = C (e^Q − 1), we W = C/2 (e^Q − 1); 1 takes C as named."),
               fibres: str = typer.Option("heartfem", "--fibres", help="Fibre rule: heartfem (theirs, default) | laplace (ours)."),
               quad_degree: int = typer.Option(4, "--quad-degree", help="Cell quadrature degree (heartFEM: 4; 0 = the preset's own)."),

@@ -14,7 +14,7 @@ from solver.fidelity import Fidelity, get_fidelity
 from solver.forward import SolveError
 from solver.lv import forward_solve, inverse_solve
 from solver.parameters import CaseParameters
-from storage.store import PARAM_NAMES, PairReader
+from storage.store import PARAM_NAMES, PairReader, StoreError
 
 
 DIRECTIONS = ("forward", "inverse")
@@ -76,9 +76,16 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
                   stiffness_factor: float = 1.0, fibres: str = "laplace", quad_degree: int | None = None,
                   direction: str = "forward") -> dict:
     """`quad_degree` overrides the preset's cell quadrature (heartFEM integrates, and places its
-    fibres, at degree 4)."""
+    fibres, at degree 4). `limit` N ≥ 1: the first N done pairs (None: all). StoreError for a store
+    that import-l2u did not write: its pairs are ours, and "their" geometry would be our own labels."""
+    if limit is not None and limit < 1:
+        raise ValueError(f"--limit must be ≥ 1 (leave it out for every pair), got {limit}")
     reader = PairReader(location)
-    keys = reader.done_cases()[:limit] if limit else reader.done_cases()
+    if reader.attrs.get("shape_source") != "imported" or reader.attrs.get("fidelity") != "imported":
+        raise StoreError(f"{location} was not imported from the original paper's dataset (it holds "
+                         f"{reader.attrs.get('fidelity')} pairs of heartctl's own): bench l2u compares with their "
+                         f"pipeline's geometry; import it with `heartctl import-l2u DIR --store …`")
+    keys = reader.done_cases()[:limit] if limit is not None else reader.done_cases()
     fid = get_fidelity(fidelity)
     if quad_degree is not None:
         fid = replace(fid, quad_degree=quad_degree)

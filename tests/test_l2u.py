@@ -141,6 +141,23 @@ def test_nothing_importable_names_a_skipped_file(source, tmp_path):
     assert "1 files skipped: ED59_10_150_60_60.vtu: ED mesh unusable: mesh has NaN or infinite" in r.output
 
 
+@pytest.mark.parametrize("limit", ["-1", "0"])
+def test_bench_l2u_limit_must_be_positive(store, limit):
+    """A slice would have taken 3 of the 4 pairs for -1 and every pair for 0."""
+    r = runner.invoke(app, ["bench", "l2u", "--store", str(store), "--limit", limit])
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert f"--limit must be ≥ 1 (leave it out for every pair), got {limit}" in r.output
+
+
+def test_bench_l2u_refuses_a_store_heartctl_generated(tmp_path):
+    from trainer_fixtures import make_tiny_store
+
+    ours = make_tiny_store(tmp_path / "ours.zarr", shapes=1)
+    r = runner.invoke(app, ["bench", "l2u", "--store", ours, "--limit", "1"])
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert "was not imported from the original paper's dataset (it holds fast pairs of heartctl's own)" in r.output
+
+
 def test_nothing_importable_exits_2_and_leaves_nothing(tmp_path):
     empty = tmp_path / "empty"
     (empty / "ED").mkdir(parents=True)
