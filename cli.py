@@ -167,20 +167,19 @@ LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve th
 @app.command()
 def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-in shape model (≥ 0)."),
          out: Path = typer.Option(..., "-o", "--out", help="Output mesh file (.vtu or .vtk)."),
-         nodes: int = typer.Option(800, "--nodes", help="Target node count (gmsh lands within ~15 % of it)."),
+         nodes: int = typer.Option(800, "--nodes", help="Target node count, 50–200,000 (gmsh lands within ~15 % of it)."),
          seed: int = typer.Option(0, "--seed", help="Shape-model seed."),
          endo: float = EndoOpt, epi: float = EpiOpt,
          units: Units = typer.Option(Units.mm, "--units", help="Length unit of the written mesh.")):
     """Write the ED mesh of a shape-model member with surface tags and fibre fields."""
     from solver.fibres import fibre_frames, helix_angle_at_nodes, transmural_coordinate
-    from solver.meshing import mesh_lv
+    from solver.meshing import check_node_target, mesh_lv
     from solver.shape_model import lv_shape
 
     try:
         _params(1.0, 1.0, endo, epi)
         _check_output(out)
-        if nodes < 50:
-            raise ValueError(f"--nodes must be ≥ 50, got {nodes}")
+        check_node_target(nodes)
         if seed < 0:
             raise ValueError(f"--seed must be ≥ 0, got {seed}")
         shape_def = lv_shape(shape, seed)
@@ -956,6 +955,9 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
     except ValueError:
         fail(f"--batches must be comma-separated integers, got {batches!r}")
     try:
+        from solver.meshing import check_node_target
+
+        check_node_target(nodes)
         if not sizes or min(sizes) < 1 or nodes < 50 or (train_batch is not None and train_batch < 1):
             raise ValueError("--batches need sizes ≥ 1, --nodes ≥ 50, --train-batch ≥ 1")
         if device not in ("cpu", "cuda"):
@@ -1358,7 +1360,10 @@ def _print_plan(plan: dict) -> None:
                       f"{cal['pair_s']:.2f} s a pair over a pressure chain" if "warm_pair_s" in cal else ""))
         typer.echo(f"estimate: {plan['core_hours']:.2f} core-hours"
                    + (f", {plan['wall_hours_at_cores'] * 60:.1f} min wall on {plan['cores']} cores" if plan.get("cores") else "")
-                   + f"; store ≈ {plan['store_bytes_estimate'] / 1e6:.0f} MB ({cal['case_bytes'] / 1e3:.1f} kB per case)")
+                   + f"; store ≈ {plan['store_bytes_estimate'] / 1e6:.0f} MB ({cal['case_bytes'] / 1e3:.1f} kB per case), "
+                   f"{plan['store_objects']:,} objects")
+        typer.echo(f"to finish in one hour: {plan['cores_for_one_hour']:,} cores, e.g. "
+                   f"{plan['worker_nodes_for_one_hour']:,} worker nodes of 32 vCPUs (cluster.yaml's c7i.8xlarge)")
         full = plan["paper_full_sweep_core_hours"]
         line = (f"full paper sweep (19,440 pairs) at this fidelity and mesh size: {full:.1f} core-hours, "
                 f"{full * 60 / 64:.0f} min on 64 cores, store ≈ {plan['paper_full_sweep_store_bytes'] / 1e9:.2f} GB")
@@ -1480,6 +1485,9 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
             raise ValueError("--cpus needs counts ≥ 1")
         if cases < 1 or nodes < 50:
             raise ValueError("--cases must be ≥ 1 and --nodes ≥ 50")
+        from solver.meshing import check_node_target
+
+        check_node_target(nodes)
     except ValueError as exc:
         fail(str(exc) if "--" in str(exc) else f"--cpus must be comma-separated integers, got {cpus!r}")
     from orchestrator.bench import run_sweep_benchmark

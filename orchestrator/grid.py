@@ -11,7 +11,7 @@ import numpy as np
 from solver.fidelity import get_fidelity
 from solver.fibres import FIBRE_RULES
 from solver.lv import BASE_CONDITIONS
-from solver.meshing import MESH_LEVELS
+from solver.meshing import MESH_LEVELS, check_node_target
 from solver.parameters import PAPER_GRID, CaseParameters
 
 AXES = ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg")
@@ -65,8 +65,7 @@ class SweepSpec:
         get_fidelity(self.fidelity)
         if self.seed < 0:
             raise ValueError(f"--seed must be ≥ 0, got {self.seed}")
-        if self.nodes < 50:
-            raise ValueError(f"--nodes must be ≥ 50, got {self.nodes}")
+        check_node_target(self.nodes)
         if self.base not in BASE_CONDITIONS:
             raise ValueError(f"--base must be one of {', '.join(BASE_CONDITIONS)}, got {self.base!r}")
         if self.fibres not in FIBRE_RULES:

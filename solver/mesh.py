@@ -93,6 +93,21 @@ def orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return tets
 
 
+MAX_COORDINATE_MM = 1e4  # 10 m: no LV mesh, in any unit it may have been written in, lies beyond
+
+
+def check_coordinates(nodes: np.ndarray, scale_to_mm: float = 1.0, unit: str = "mm") -> None:
+    """MeshError for NaN or infinite coordinates, or any beyond ±MAX_COORDINATE_MM once scaled to mm
+    (checked before any arithmetic on them, which would overflow with numpy warnings)."""
+    nodes = np.asarray(nodes, dtype=float)
+    if not np.all(np.isfinite(nodes)):
+        raise MeshError("mesh has NaN or infinite node coordinates")
+    largest = float(np.abs(nodes).max()) if nodes.size else 0.0
+    if largest > MAX_COORDINATE_MM / scale_to_mm:
+        raise MeshError(f"mesh has coordinates up to {largest:.3g} {unit}, beyond ±{MAX_COORDINATE_MM:g} mm: no LV "
+                        f"is that large; check the mesh's coordinates and length unit (--units)")
+
+
 def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Validate coordinates and connectivity; return tets positively oriented, or raise MeshError.
 
@@ -103,8 +118,7 @@ def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     tets = np.asarray(tets)
     if nodes.ndim != 2 or nodes.shape[1] != 3 or nodes.shape[0] < 4:
         raise MeshError("mesh needs at least 4 nodes with 3 coordinates")
-    if not np.all(np.isfinite(nodes)):
-        raise MeshError("mesh has NaN or infinite node coordinates")
+    check_coordinates(nodes)
     if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
         raise MeshError("mesh has no tetrahedra (only linear 4-node tets are supported)")
     if tets.min() < 0 or tets.max() >= nodes.shape[0]:

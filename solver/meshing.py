@@ -9,6 +9,13 @@ from .shape_model import LVShape
 
 DEFAULT_NODES = 800  # the paper's meshes have 645–692 nodes; our default range is 600–1000
 MESH_LEVELS = {"coarse": 350, "default": DEFAULT_NODES, "fine": 2500}
+MIN_NODES, MAX_NODES = 50, 200_000  # 250× the default: a mistyped count (1e8) must not mesh until killed
+
+
+def check_node_target(nodes: int, name: str = "--nodes") -> None:
+    """ValueError unless the target node count is MIN_NODES–MAX_NODES."""
+    if not MIN_NODES <= nodes <= MAX_NODES:
+        raise ValueError(f"{name} must be {MIN_NODES}–{MAX_NODES:,} (a target node count), got {nodes}")
 
 
 def _gmsh_truncated_shell(endo_axes, epi_axes, centre_z: float, base_z: float, size_mm: float):
@@ -82,8 +89,7 @@ def mesh_truncated_ellipsoid(endo_axes, epi_axes, centre_z: float, base_z: float
                              target_nodes: int = DEFAULT_NODES, info=None) -> TetMesh:
     """Mesh with about `target_nodes` nodes (within ~15 %): the element size is calibrated from
     a first mesh (node count ∝ h^-3) and refined once more if needed."""
-    if target_nodes < 50:
-        raise ValueError(f"target node count must be ≥ 50, got {target_nodes}")
+    check_node_target(target_nodes, "target node count")
     info = dict(info or {})
     ax, ay, c = epi_axes
     wall_volume = 4.0 / 3.0 * np.pi * (ax * ay * c - np.prod(endo_axes)) * 0.6

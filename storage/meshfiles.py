@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from solver.mesh import MeshError, TetMesh, make_mesh
+from solver.mesh import MeshError, TetMesh, check_coordinates, make_mesh
 
 UNIT_TO_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
 SURFACE_CODES = {"endo": 1, "epi": 2, "base": 3}
@@ -67,6 +67,10 @@ def read_mesh(path: str | os.PathLike, units: str = "mm", check_units: bool = Tr
         raise MeshError(f"{path} must have 3-D points")
     _check_indices(tets, points.shape[0], path, "tetrahedra")
     check_points_used(tets, points.shape[0], path)
+    try:
+        check_coordinates(points, scale, units)  # before scaling: 1e306 m would overflow to inf
+    except MeshError as exc:
+        raise MeshError(f"{path}: {exc}") from None
     surfaces = _tagged_surfaces(m, path)
     mesh = make_mesh(points * scale, tets, *surfaces, info={"source": str(path), "units": units})
     if check_units:

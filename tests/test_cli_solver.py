@@ -112,6 +112,8 @@ def _write_bad(tmp_path, kind, lv_file):
         tets = lv.tets.copy()
         tets[7, 2] = lv.n_nodes + 4 if kind == "index_past" else -1
         meshio.write(path, meshio.Mesh(lv.nodes, [("tetra", tets)]))
+    elif kind == "huge":  # coordinates ×1e200: numpy would overflow on them
+        meshio.write(path, meshio.Mesh(lv.nodes * 1e200, [("tetra", lv.tets)]))
     elif kind == "unused_point":  # a point in no tet: dropping it would renumber the output's nodes
         meshio.write(path, meshio.Mesh(np.vstack([lv.nodes, [[0.0, 0.0, 50.0]]]), [("tetra", lv.tets)]))
     elif kind == "wedges":  # tets plus a few wedge cells, which a tet reader would drop silently
@@ -154,6 +156,7 @@ BAD_MESHES = {
     "index_past": "tetrahedra refer to point",
     "index_negative": "tetrahedra refer to point -1",
     "unused_point": "1 points that belong to no tetrahedron",
+    "huge": "e+201 mm, beyond ±10000 mm: no LV",
     "untagged_part": "carry no surface tag",
     "unknown_tag": "other than 1 (endo)",
     "tagged_twice": "more than one surface tag",
@@ -414,3 +417,25 @@ def test_units_check_names_the_unit_that_fits(tmp_path, lv_file):
     giant = lv.with_nodes(lv.nodes * 3.0)  # 250 mm long, 30 mm wall, ~3.5 L: no unit makes it a human LV
     assert "outside a human LV's sizes" in units_warning(giant, "mm", "giant.vtu")
     assert units_warning(giant, "mm", "giant.vtu", hint=False).count("--units") == 0
+
+
+@pytest.mark.parametrize("kind,units", [("huge", "mm"), ("huge", "m"), ("nan", "mm")])
+def test_absurd_coordinates_are_one_line_without_numpy_warnings(tmp_path, lv_file, kind, units):
+    """Warnings as errors: any overflow warning numpy printed on the way would fail the command."""
+    import warnings
+
+    path = _write_bad(tmp_path, kind, lv_file)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = run("solve", path, "--pressure", 8, "--stiffness", 150, "--units", units, "-o", tmp_path / "o.vtu")
+    assert r.exit_code == 2, (r.output, r.exception)
+    assert len(r.output.strip().splitlines()) == 1 and ("beyond ±10000 mm" in r.output or "NaN" in r.output)
+
+
+def test_mesh_node_count_has_an_upper_limit(tmp_path):
+    for nodes in (100_000_000, 10):
+        r = run("mesh", "--shape", 0, "--nodes", nodes, "-o", tmp_path / "m.vtu")
+        assert r.exit_code == 2 and f"--nodes must be 50–200,000 (a target node count), got {nodes}" in r.output
+    r = runner.invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--nodes", "300000", "--dry-run"])
+    assert r.exit_code == 2 and "--nodes must be 50–200,000" in r.output, r.output
+    assert not (tmp_path / "m.vtu").exists() and not (tmp_path / "s.zarr").exists()
