@@ -2,6 +2,7 @@
 and store size from a short calibration solve). Runs in-process, without Ray, writes nothing."""
 from __future__ import annotations
 
+import math
 import time
 
 from storage.store import DONE, FAILED, PairReader, encoded_case_bytes
@@ -11,6 +12,14 @@ from .tasks import mesh_shape, run_case, run_chain
 
 PAPER_FULL_CASES = 19_440
 FAST_GOAL_CORE_HOURS = 8.0
+WORKER_VCPUS = 32  # cluster.yaml's worker node (c7i.8xlarge)
+SHAPE_OBJECTS = 21  # per shape: its group's zarr.json, 11 arrays' zarr.json, 9 single-chunk arrays
+
+
+def store_objects(shapes: int, cases_per_shape: int) -> int:
+    """Objects the store holds when complete (files on disk, keys in S3): per shape its group and array
+    metadata and single-chunk arrays, and one chunk per case of `unloaded` and of `loaded`; plus the root."""
+    return shapes * (SHAPE_OBJECTS + 2 * cases_per_shape) + 2
 
 
 def existing_counts(location: str, spec: SweepSpec) -> dict:
@@ -65,6 +74,7 @@ def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: i
         "cases_per_shape": spec.cases_per_shape, "cases": spec.n_cases, "done": counts["done"],
         "failed": counts["failed"], "to_run": remaining, "fidelity": spec.fidelity, "seed": spec.seed,
         "mesh_nodes": spec.nodes, "grid": spec.grid_attrs(),
+        "store_objects": store_objects(spec.shapes, spec.cases_per_shape),
     }
     if calibration:
         cal = calibrate(spec, warm_start)
@@ -74,6 +84,8 @@ def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: i
         if cores:
             plan["cores"] = cores
             plan["wall_hours_at_cores"] = core_s / 3600 / cores
+        plan["cores_for_one_hour"] = max(1, math.ceil(core_s / 3600))
+        plan["worker_nodes_for_one_hour"] = math.ceil(plan["cores_for_one_hour"] / WORKER_VCPUS)
         plan["store_bytes_estimate"] = int(spec.n_cases * cal["case_bytes"]
                                            + spec.shapes * cal["nodes"] * 3 * 8 * 1.2)
         full = PAPER_FULL_CASES * cal["pair_s"] / 3600

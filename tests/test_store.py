@@ -294,3 +294,15 @@ def test_status_probing_the_lock_does_not_refuse_a_writer(tmp_path, shape0):
     finally:
         other.kill()
         other.wait()
+
+
+def test_dry_run_object_count_matches_a_written_store(tmp_path):
+    """generate --dry-run's object count (the files a complete store holds) against a written one."""
+    from orchestrator.plan import store_objects
+    from trainer_fixtures import make_tiny_store
+
+    path = tmp_path / "objects.zarr"
+    make_tiny_store(path, shapes=2, pressures=(8.0, 12.0), stiffness=(100.0, 200.0))
+    files = [p for p in path.rglob("*") if p.is_file() and p.name != ".lock"]
+    # the fixture's shape coefficients are all 0, Zarr's fill value: their chunks are never written
+    assert store_objects(2, 4) - 2 == len(files), sorted(str(p.relative_to(path)) for p in files)
