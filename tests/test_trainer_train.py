@@ -15,7 +15,7 @@ import torch
 from trainer.checkpoint import load_checkpoint, load_run, save_checkpoint
 from trainer.config import PAPER, TrainConfig, TrainerError, named_config
 from trainer.evaluate import evaluate_run
-from trainer.loop import fit
+from trainer.loop import Dist, fit
 from trainer.metrics import case_metrics, dsc, hausdorff, nn_mean_distance, nodewise_error
 from trainer.predict import Predictor
 from trainer.schedule import cosine_lr
@@ -63,6 +63,24 @@ def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
     for option, value in (("batch_size", 3), ("lr_schedule", "cosine"), ("labelled_share", 0.5)):
         with pytest.raises(TrainerError, match=f"started with {option} "):
             fit(_cfg(store, epochs=3, **{option: value}), run)
+
+
+def test_resume_removes_the_temporary_files_of_a_save_cut_short(store, tmp_path):
+    """A run killed while saving leaves save_checkpoint's temporary file (`.checkpoint.XXXX.pt`, as
+    mkstemp names it); resuming deletes it and touches no other file."""
+    run = tmp_path / "run"
+    fit(_cfg(store, epochs=1), run)
+    stale = [run / ".checkpoint.k3j_9x2a.pt", run / ".checkpoint.q0w8e7r6.pt"]
+    for path in stale:
+        path.write_bytes(b"PK\x03\x04 half a zip")
+    kept = [run / "checkpoint_copy.pt", run / ".checkpoint.notes"]
+    for path in kept:
+        path.write_bytes(b"mine")
+    logged = []
+    s = fit(_cfg(store, epochs=2), run, Dist(log=logged.append))
+    assert s["resumed_from"] == 1 and load_run(run)["epoch"] == 2
+    assert not any(p.exists() for p in stale) and all(p.exists() for p in kept)
+    assert any("removed 2 temporary checkpoint file(s)" in line for line in logged), logged
 
 
 def test_resume_obeys_a_new_patience_and_learning_rate(store, tmp_path):

@@ -140,6 +140,21 @@ def run_checkpoint_path(run_dir: str | os.PathLike) -> Path:
     return Path(run_dir) / CHECKPOINT_NAME
 
 
+def remove_stale_temporaries(run_dir: str | os.PathLike) -> list[Path]:
+    """Delete the temporary files (`.checkpoint.*.pt`, save_checkpoint's) that a run killed while
+    saving left in run_dir; returns them. Call it when a run starts or resumes there, before it saves:
+    the run directory has one writer, so no temporary of a live save is taken."""
+    name = Path(CHECKPOINT_NAME)
+    removed = []
+    for tmp in Path(run_dir).glob(f".{name.stem}.*{name.suffix}"):
+        try:
+            tmp.unlink()
+            removed.append(tmp)
+        except OSError:
+            pass
+    return removed
+
+
 def load_run(run_dir: str | os.PathLike) -> dict:
     """The checkpoint of a finished or running run directory."""
     run_dir = Path(run_dir)

@@ -18,7 +18,8 @@ from ._malloc import tune_allocator
 from .augment import rotate_batch, scale_batch
 from .averaging import WeightAverage
 from .batching import GraphTable, chunks, table_device
-from .checkpoint import check_resume_parts, cpu_state, load_checkpoint, run_checkpoint_path, save_checkpoint
+from .checkpoint import (check_resume_parts, cpu_state, load_checkpoint, remove_stale_temporaries, run_checkpoint_path,
+                         save_checkpoint)
 from .config import TrainConfig, TrainerError, TrainingDiverged
 from .data import DataBundle, check_fingerprint, training_data
 from .files import write_csv, write_json
@@ -258,6 +259,9 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
     made_run_dir = writes and not run_dir.exists()
     if writes:
         run_dir.mkdir(parents=True, exist_ok=True)
+        stale = remove_stale_temporaries(run_dir)
+        if stale:
+            dist.log(f"removed {len(stale)} temporary checkpoint file(s) a save cut short left in {run_dir}")
         write_json(run_dir / "config.json", cfg.as_dict())
     if cfg.model.kind == "pca":
         return _fit_pca(cfg, run_dir, bundle, dist, t0)

@@ -10,7 +10,8 @@ import tempfile
 import uuid
 from pathlib import Path
 
-from .checkpoint import CHECKPOINT_NAME, check_resume_parts, load_checkpoint, run_checkpoint_path, save_checkpoint
+from .checkpoint import (CHECKPOINT_NAME, check_resume_parts, load_checkpoint, remove_stale_temporaries,
+                         run_checkpoint_path, save_checkpoint)
 from .config import TrainConfig, TrainerError, TrainingDiverged
 from .loop import Dist, best_val_md, fit, pick_resume_state, write_metrics_csv
 
@@ -190,6 +191,7 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     run_dir = Path(run_dir).resolve()
     made_run_dir = not run_dir.exists()
     run_dir.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(run_dir)  # a killed save's; the workers save into Ray's storage, this driver at the end
     local = run_checkpoint_path(run_dir)
     driver_state = ray.put(local.read_bytes()) if local.is_file() else None
     if local.is_file():  # a damaged file is an input error, before any worker starts
