@@ -1330,10 +1330,21 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_now} failed "
                f"of {report.total} ({report.done} done and {report.failed} failed in this run, "
                f"{report.submitted} submitted); meshing {report.phase1_s:.1f} s, pairs {report.phase2_s:.1f} s "
-               f"on {report.cpus:g} CPUs ({rate:.2f} cases/s)"
+               f"on {_cpus_line(report)} ({rate:.2f} cases/s)"
                + (f"; {report.lost} cases lost with their workers are still pending (rerun to solve them)"
                   if report.lost else "") if report.submitted else
                f"{store}: nothing to run — {report.done_before} done, {report.failed_before} failed of {report.total}")
+
+
+def _cpus_line(report) -> str:
+    """Where the pairs were solved: the CPUs whose workers solved them (and their nodes, if several),
+    and the cluster's CPUs when it had more."""
+    where = f"{report.cpus:g} CPU{'s' if report.cpus != 1 else ''}"
+    if report.nodes > 1:
+        where += f" of {report.nodes} nodes"
+    if report.cluster_cpus > report.cpus:
+        where += f" (the cluster had {report.cluster_cpus:g})"
+    return where
 
 
 def _run_state(writer: dict | None, object_store: bool) -> str:

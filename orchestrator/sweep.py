@@ -89,10 +89,13 @@ class SweepReport:
     phase1_s: float = 0.0
     phase2_s: float = 0.0
     wall_s: float = 0.0
-    cpus: float = 0.0
+    cpus: float = 0.0  # CPUs that solved this run's cases (cpus_used), else the cluster's
+    nodes: int = 0  # nodes whose workers solved this run's cases
+    cluster_cpus: float = 0.0  # the most CPUs the cluster had during the run
     run: int = -1
     driver_store_s: float = 0.0  # driver time spent validating + writing results
     records: list = field(default_factory=list, repr=False)  # per finished task: (shape, k, status)
+    workers: set = field(default_factory=set, repr=False)  # (node or host, pid) of the workers that solved cases
 
     @property
     def failed_now(self) -> int:
@@ -104,7 +107,7 @@ class SweepReport:
         return (self.done + self.failed) / self.phase2_s if self.phase2_s > 0 else float("nan")
 
     def as_dict(self) -> dict:
-        d = {k: v for k, v in self.__dict__.items() if k != "records"}
+        d = {k: v for k, v in self.__dict__.items() if k not in ("records", "workers")}
         d["throughput_cases_per_s"] = self.throughput
         return d
 
@@ -517,6 +520,8 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
                     for k, result in zip(chain, results):
                         if result is None:  # lost with its worker: pending for the next run
                             continue
+                        if result.get("pid") is not None:
+                            report.workers.add((result.get("node") or result.get("host"), result["pid"]))
                         t_w = time.perf_counter()
                         status = _record(store, s, k, result, submitted_at, run)
                         report.driver_store_s += time.perf_counter() - t_w
@@ -530,17 +535,38 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
                             on_event({"shape": s, "case": k, "status": status, "report": report})
                 store.flush(FLUSH_INTERVAL_S)
             report.phase2_s = time.perf_counter() - t2
-            report.cpus = max(report.cpus, limit.cpus_seen)
+            report.cluster_cpus = max(report.cpus, limit.cpus_seen)
+            report.cpus, report.nodes = cpus_used(report.workers, _node_cpus()) if report.workers else (report.cluster_cpus, 0)
     finally:
         store.flush()
         report.wall_s = time.perf_counter() - t_start
         try:
             store.end_run(run, {"done": report.done, "failed": report.failed, "submitted": report.submitted,
-                                "lost": report.lost,
+                                "lost": report.lost, "cpus_used": report.cpus, "nodes": report.nodes,
                                 "wall_s": report.wall_s, "phase1_s": report.phase1_s, "phase2_s": report.phase2_s})
         except Exception:
             pass
     return report
+
+
+def cpus_used(workers, node_cpus: dict) -> tuple[float, int]:
+    """(CPUs, nodes) that solved cases: each worker process runs one task (one CPU) at a time, so a
+    node used as many CPUs as it had distinct workers, at most its CPU count (Ray may replace a
+    worker). workers: {(node id or host, pid)}; node_cpus: {node id: CPUs} (ray.nodes())."""
+    from collections import Counter
+
+    per_node = Counter(node for node, _ in workers)
+    return float(sum(min(n, node_cpus.get(node, n)) for node, n in per_node.items())), len(per_node)
+
+
+def _node_cpus() -> dict:
+    """{node id: CPUs} of every node Ray knows, alive or gone."""
+    import ray
+
+    try:
+        return {n["NodeID"]: float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes()}
+    except Exception:
+        return {}
 
 
 class InFlightLimit:

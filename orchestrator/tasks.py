@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import time
 from dataclasses import replace
 
@@ -11,6 +12,16 @@ import numpy as np
 
 ROBUST_INITIAL_LOAD_STEP = 0.05
 ROBUST_MIN_STEP_FACTOR = 0.1
+
+
+def ray_node_id() -> str | None:
+    """The Ray node this process runs on, when it is a Ray worker (Ray already imported and
+    connected here); None otherwise, without importing Ray."""
+    ray = sys.modules.get("ray")
+    try:
+        return ray.get_runtime_context().get_node_id() if ray is not None and ray.is_initialized() else None
+    except Exception:
+        return None
 
 
 def _single_thread() -> None:
@@ -63,7 +74,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     initial_unloaded: a starting unloaded geometry [n, 3] mm for the first attempt (warm start);
     workspace: a `solver.lv.PairWorkspace` on this mesh for the first attempt (the retry builds its own).
     Returns ok, unloaded/loaded [n,3] (mm, float64) or None, stats (the pair's), reason, attempts,
-    host, pid, started_at / finished_at (unix s), task_wall_s.
+    host, pid, node (the Ray node id, None outside Ray), started_at / finished_at (unix s), task_wall_s.
     """
     _single_thread()
     from solver.fidelity import get_fidelity
@@ -93,7 +104,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
             line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
             reasons.append(f"{type(exc).__name__}: {line}".strip(" :"))
     wall = time.perf_counter() - t0
-    out = {"ok": pair is not None, "attempts": attempts, "host": socket.gethostname(), "pid": os.getpid(),
+    out = {"ok": pair is not None, "attempts": attempts, "host": socket.gethostname(), "pid": os.getpid(), "node": ray_node_id(),
            "started_at": started_at, "finished_at": time.time(), "task_wall_s": wall,
            "unloaded": None, "loaded": None, "stats": {}, "reason": None}
     if pair is None:
