@@ -11,6 +11,8 @@ from pathlib import Path
 
 import typer
 
+from trainer.config import CONFIG_HELP  # the trainer's one light module (no torch): --help stays fast
+
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Unloaded LV geometry from the end-diastolic shape: FE data, training, evaluation.")
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (print figures and ratios).")
@@ -155,10 +157,28 @@ RotateDegOpt = typer.Option(0.0, "--rotate-deg", help="Augment: turn each traini
                                                       "random angle in ±DEG (exact new FE pairs; 0 = off).")
 ScalePctOpt = typer.Option(0.0, "--scale-pct", help="Augment: scale each training graph about its base by a random "
                                                     "factor in 1 ± PCT/100 (exact new FE pairs; 0 = off).")
-# every name in trainer.config.NAMED_CONFIGS (tested; cli.py does not import the trainer, so --help stays light)
-CONFIG_HELP = ("Model: paper | multitoken | A1 A2 A3 A4 A5 | C0 C2 C5 C6 | R1 R2 R3 R4 R5 | A1ema | A1ema-wall "
-               "A1ema-wall-d0 A1ema-wall-d0-load | A1ema-resp-d0 (our best) A1ema-resp-d0-load A1ema-resp-d0-gcn "
-               "R5-resp-d0 | pca (README and docs/training.md: Configurations).")
+# train --config and the options that change its network (trainer.config.compose)
+NodeInputOpt = typer.Option(None, "--node-input", help="Node input: xyz (coordinates: the paper) | wall (+ wall "
+                            "coordinates ζ, τ) | response (+ wall coordinates and the mesh's linear FE response). "
+                            "Default: the --config's.")
+EmaOpt = typer.Option(None, "--ema", help="Weight averaging: decay d of the weights' moving average, which is "
+                      "validated and saved (e.g. 0.99; 0 = off). Default: the --config's.")
+DropoutOpt = typer.Option(None, "--dropout", help="Dropout after every layer (0 = off; the paper's 0.1). "
+                          "Default: the --config's.")
+OutputScaleOpt = typer.Option(None, "--output-scale", help="global (one fitted scale: the paper) | load (also × the "
+                              "case's expected displacement size from P, C and the helix angles). Default: the --config's.")
+LayerOpt = typer.Option(None, "--layer", help="Mesh-encoder layer: gat (the paper) | gatv2 | gcn | sage. "
+                        "Default: the --config's.")
+SetOpt = typer.Option(None, "--set", metavar="KEY=VALUE", help="KEY=VALUE, repeatable, applied last: any network field "
+                      "(trainer/config.py ModelConfig, e.g. hidden=64, cycle=false) or weight_decay, lr_patience, "
+                      "lr_factor.")
+PresetScalePctOpt = typer.Option(None, "--scale-pct", help="Augment: scale each training graph about its base by a "
+                                 "random factor in 1 ± PCT/100 (exact new FE pairs; 0 = off). Default: the --config "
+                                 "preset's (recommended: 8), else 0.")
+PresetLrScheduleOpt = typer.Option(None, "--lr-schedule", help="plateau (halve the rate after 10 epochs without a "
+                                   "better validation loss: the paper) | cosine (anneal towards 1 % of --lr over "
+                                   "--epochs, set per epoch). Default: the --config preset's (recommended: cosine), "
+                                   "else plateau.")
 LrScheduleOpt = typer.Option("plateau", "--lr-schedule", help="plateau (halve the rate after 10 epochs without a better "
                                                               "validation loss: the paper) | cosine (anneal towards 1 % "
                                                               "of --lr over --epochs, set per epoch).")
@@ -699,6 +719,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                                                "reusing it resumes the run."),
           gpus: int = typer.Option(0, "--gpus", help="GPU workers (DDP over NCCL); 0 = CPU workers with gloo."),
           config: str = typer.Option("paper", "--config", help=CONFIG_HELP),
+          node_input: str = NodeInputOpt, ema: float = EmaOpt, dropout: float = DropoutOpt,
+          output_scale: str = OutputScaleOpt, layer: str = LayerOpt, settings: list[str] = SetOpt,
           epochs: int = typer.Option(None, "--epochs", help="Max epochs (default 500; --local 5)."),
           batch_size: int = typer.Option(16, "--batch-size", help="Graphs per batch per worker."),
           sr: float = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03)."),
@@ -714,8 +736,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           label_seed: int = typer.Option(None, "--label-seed", help="With --sr < 1: seed of the labelled subset only "
                                          "(default: the split seed); the same test cases, other labelled pairs."),
           rotate_deg: float = RotateDegOpt,
-          scale_pct: float = ScalePctOpt,
-          lr_schedule: str = LrScheduleOpt,
+          scale_pct: float = PresetScalePctOpt,
+          lr_schedule: str = PresetLrScheduleOpt,
           local: bool = typer.Option(False, "--local", help="Two CPU workers (Ray Train, gloo), a few epochs: minutes."),
           no_ray: bool = typer.Option(False, "--no-ray", help="Run the plain PyTorch loop in this process (no Ray)."),
           device: str = typer.Option(None, "--device", help="With --no-ray: cpu | cuda (default cuda when available)."),
@@ -732,13 +754,15 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
     """Train HeartUnloadNet (or an ablation / baseline) on a store; Ray Train DDP, or --no-ray."""
     from storage.store import StoreError, inspect_store
     from trainer.checkpoint import load_checkpoint, run_checkpoint_path
-    from trainer.config import TrainConfig, TrainerError, named_config
+    from trainer.config import TrainConfig, TrainerError, compose, describe_model
     from trainer.data import check_split, training_data
     from trainer.loop import check_resumable, check_same_run
     from trainer.splits import parse_split
 
     try:
-        model = named_config(config)
+        model, training = compose(config, node_input=node_input, ema=ema, dropout=dropout, output_scale=output_scale,
+                                  layer=layer, settings=settings or ())
+        training.update({k: v for k, v in (("scale_pct", scale_pct), ("lr_schedule", lr_schedule)) if v is not None})
         if local and (gpus or address):
             raise TrainerError("--local runs two CPU workers on a local Ray; it takes no --gpus or --address")
         if no_ray and (local or address or gpus):
@@ -755,11 +779,10 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
         if not is_url(store):  # Ray Train workers run in their own working directory
             store = str(Path(store).resolve())
         shown_dir, run_dir = run_dir, run_dir.resolve()  # the user's spelling in the last line
-        cfg = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr,
+        cfg = TrainConfig(store=store, config_name=describe_model(model), model=model, split=split, sr=sr,
                           train_fraction=train_fraction, labelled_share=labelled_share, seed=seed, split_seed=split_seed,
-                          label_seed=label_seed, rotate_deg=rotate_deg, scale_pct=scale_pct, epochs=epochs if epochs is not None else (5 if local else 500),
-                          batch_size=batch_size, lr=lr, lr_schedule=lr_schedule, patience=patience, bf16=bf16,
-                          compile=compile_model)
+                          label_seed=label_seed, rotate_deg=rotate_deg, epochs=epochs if epochs is not None else (5 if local else 500),
+                          batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model, **training)
         if inspect_store(store) is None:
             raise StoreError(f"no heartctl store at {store}")
         nearest = next(p for p in (run_dir, *run_dir.parents) if p.exists())  # made with its parents when training starts
@@ -893,7 +916,8 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
         typer.echo(json_line({**report["summary"], "nn_md_mm": report["nn_md_mm"],
                                "ms_per_case_batched": report["ms_per_case_batched"],
                                "response_ms_per_mesh": report["response_ms_per_mesh"], "split": split,
-                               "config": report["config"], "rotations": report["rotations"],
+                               "config": report["config"], "configuration": report["configuration"],
+                               "rotations": report["rotations"],
                                "members": report["members"], "labels_fidelity": report["labels_fidelity"],
                                **({"reference": report["reference"]} if "reference" in report else {})}))
         return
@@ -920,6 +944,9 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
         table.add_row(*cells)
     con = Console(width=200)
     con.print(table)
+    configurations = report["configuration"]
+    for i, line in enumerate(configurations):
+        con.print(f"configuration{f' of member {i + 1}' if len(configurations) > 1 else ''}: {line}", markup=False)
     con.print(f"inference: {report['summary']['ms_per_case']:.2f} ms per case at batch 1, "
               f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})"
               + (f", each the mean of {report['rotations']} turns about the long axis" if report["rotations"] > 1 else ""))
@@ -942,7 +969,8 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                     threads: int = typer.Option(None, "--threads", help="torch CPU threads (default: torch's)."),
                     gat_kernel: str = typer.Option("sparse", "--gat-kernel",
                                                    help="sparse (one SpMM per GAT layer) | pyg (GATConv)."),
-                    mesh: Path = typer.Option(None, "--mesh", help="Time on this LV mesh (mm) instead of meshing one with gmsh."),
+                    mesh: Path = typer.Option(None, "--mesh", help="Time on this LV mesh instead of meshing one with gmsh."),
+                    units: Units = typer.Option(Units.mm, "--units", help="Length unit of the --mesh file."),
                     compile_model: bool = typer.Option(False, "--compile", help="torch.compile the model (dynamic shapes)."),
                     profile: bool = typer.Option(False, "--profile", help="Also print torch.profiler's top operators "
                                                  "of a training step and of the largest inference batch."),
@@ -970,9 +998,12 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
             torch.set_num_threads(threads)
         if mesh is not None and not mesh.is_file():
             raise ValueError(f"--mesh {mesh}: no such file")
+        if mesh is None and units is not Units.mm:
+            raise ValueError("--units gives the length unit of the --mesh file; without --mesh none is read")
         with _warnings_as_lines():
             r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
-                            mesh_path=None if mesh is None else str(mesh), compile_model=compile_model, profile=profile)
+                            mesh_path=None if mesh is None else str(mesh), compile_model=compile_model, profile=profile,
+                            mesh_units=units.value)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
@@ -1125,19 +1156,20 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
                              target_dsc: float = typer.Option(0.99, "--target-dsc", help="DSC@1mm target."),
                              device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
                              rotate_deg: float = RotateDegOpt,
-                             scale_pct: float = ScalePctOpt,
-                             lr_schedule: str = LrScheduleOpt,
+                             scale_pct: float = PresetScalePctOpt,
+                             lr_schedule: str = PresetLrScheduleOpt,
                              as_json: bool = typer.Option(False, "--json", help="Print the result as JSON.")):
     """Train one configuration on growing fractions of the training shapes, evaluate each on the same
     test shapes, fit error ∝ pairs^(−b) and extrapolate the pairs a target would take."""
     from storage.store import inspect_store
-    from trainer.config import TrainConfig, TrainerError, named_config
+    from trainer.config import TrainConfig, TrainerError, compose
     from trainer.learning_curve import parse_fractions, run_learning_curve
     from trainer.splits import parse_split
 
     try:
         values = parse_fractions(fractions)
-        model = named_config(config)
+        model, training = compose(config)  # a preset brings its training options
+        training.update({k: v for k, v in (("scale_pct", scale_pct), ("lr_schedule", lr_schedule)) if v is not None})
         parse_split(split)
         _check_training_device(device)
         if not (target_md > 0 and target_hd > 0 and 0 < target_dsc < 1):
@@ -1147,7 +1179,7 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
         if root.exists() and not root.is_dir():
             raise TrainerError(f"--root {root} is a file")
         base = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed, epochs=epochs,
-                           batch_size=batch_size, rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
+                           batch_size=batch_size, rotate_deg=rotate_deg, **training)
         targets = {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc}
         result = run_learning_curve(base, values, root, targets, device, lambda line: typer.echo(line, err=True))
     except _trainer_errors() as exc:

@@ -502,6 +502,15 @@ def test_ensemble_warnings_speak_for_every_member(trained, tmp_path):
         assert any("pressure 12 is outside the training grid [4, 6]" in w for w in warnings), warnings
 
 
+def test_bench_model_reads_its_mesh_in_the_unit_given(tmp_path):
+    cm = tmp_path / "lv_cm.vtu"
+    write_mesh(cm, lv_mesh(0), units="cm")
+    r = run("bench", "model", "--mesh", cm, "--units", "cm", "--batches", "1", "--train-batch", 2, "--threads", 1)
+    assert r.exit_code == 0, r.output
+    assert "warning" not in r.output and f"mesh {lv_mesh(0).n_nodes} nodes" in r.output
+    assert_bad_input(run("bench", "model", "--units", "cm"), "--units gives the length unit of the --mesh file")
+
+
 def test_a_mesh_in_another_unit_draws_one_size_warning_with_the_network(trained, tmp_path):
     """unload --method gnn on a cm mesh read as mm: the unit warning of the mesh reader, once, and not
     the network's own size warning beside it."""

@@ -79,8 +79,8 @@ def _profile(fn, device, calls: int = 3, rows: int = 25) -> str:
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
                 train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0,
                 gat_kernel: str = "sparse", mesh_path: str | None = None, compile_model: bool = False,
-                profile: bool = False) -> dict:
-    """mesh_path: time on this mesh (any format storage.meshfiles reads, mm) instead of meshing shape 0
+                profile: bool = False, mesh_units: str = "mm") -> dict:
+    """mesh_path: time on this mesh (any format storage.meshfiles reads, in `mesh_units`) instead of meshing shape 0
     with gmsh for `nodes` nodes (lets a GPU host without gmsh run the benchmark). compile_model: run
     the batched inference and the training step through torch.compile (dynamic shapes; the first,
     untimed call of each pays the compilation, reported as compile_s). profile: also return torch.profiler
@@ -102,7 +102,7 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
     if mesh_path is not None:
         from storage.meshfiles import read_mesh
 
-        mesh = read_mesh(mesh_path)
+        mesh = read_mesh(mesh_path, mesh_units)
     else:
         from solver.meshing import mesh_lv
         from solver.shape_model import lv_shape
