@@ -618,15 +618,77 @@ def test_sigterm_stops_training_like_ctrl_c(trained, tmp_path):
     assert load_run(run_dir)["epoch"] >= 1  # epoch 2 may have been cut short while saving
 
 
-def test_train_help_names_every_configuration():
-    """`train --help` lists every --config name (the README's recommended ones were missing)."""
-    import re
+def test_train_help_names_every_base_configuration_and_the_preset():
+    """`train --help` lists every base name and `recommended`; the compatibility names stay unadvertised."""
+    import cli
+    from trainer import config
 
-    from cli import CONFIG_HELP
-    from trainer.config import NAMED_CONFIGS
+    assert cli.CONFIG_HELP is config.CONFIG_HELP
+    for name in (*config.BASE_CONFIGS, *config.PRESETS):
+        assert name in config.CONFIG_HELP or name.startswith("R"), name  # R1–R5 as a range
+    assert "R1–R5" in config.CONFIG_HELP and not any(alias in config.CONFIG_HELP for alias in config.ALIASES)
 
-    named = set(re.findall(r"[A-Za-z][\w-]*", CONFIG_HELP.split("(README")[0].removeprefix("Model:")))
-    assert set(NAMED_CONFIGS) <= named and named - set(NAMED_CONFIGS) <= {"our", "best"}
+
+def test_train_composes_the_configuration_from_options_and_evaluate_prints_it(trained, tmp_path):
+    """Options on top of a base give the network the old coded name gave, field by field; the checkpoint
+    holds every field; evaluate prints the configuration in those terms; the compatibility name trains
+    the same network."""
+    from trainer.config import ModelConfig, TrainConfig
+
+    composed, alias = tmp_path / "composed", tmp_path / "alias"
+    common = ("--store", trained["store"], "--no-ray", "--epochs", 1, "--batch-size", 8, "--device", "cpu",
+              "--set", "hidden=8", "--set", "heads=2", "--set", "decoder_hidden=16", "--set", "param_hidden=8")
+    r = run("train", "--run-dir", composed, "--config", "A1", "--node-input", "wall", "--ema", 0.99, "--dropout", 0,
+            "--output-scale", "load", *common)
+    assert r.exit_code == 0, r.output
+    r = run("train", "--run-dir", alias, "--config", "A1ema-wall-d0-load", *common)
+    assert r.exit_code == 0, r.output
+    saved = load_run(composed)["train_config"]
+    assert set(saved["model"]) == {f.name for f in __import__("dataclasses").fields(ModelConfig)}
+    assert saved["model"] == load_run(alias)["train_config"]["model"]
+    assert TrainConfig.from_dict(saved).model.output_scale == "load"
+    r = run("evaluate", "--run", composed, "--store", trained["store"], "--no-plots", "--out", tmp_path / "e")
+    assert r.exit_code == 0, r.output
+    line = next(ln for ln in r.output.splitlines() if ln.startswith("configuration:"))
+    assert line.startswith("configuration: A1 + node-input wall, ema 0.99, dropout 0, output-scale load, hidden=8"), line
+    r = run("evaluate", "--run", composed, "--store", trained["store"], "--no-plots", "--json", "--out", tmp_path / "e")
+    assert json.loads(r.output.strip().splitlines()[-1])["configuration"][0] == line.removeprefix("configuration: ")
+
+
+@pytest.mark.parametrize("args,words", [
+    (("--set", "hiden=8"), ("unknown --set key 'hiden'",)),
+    (("--set", "hidden"), ("--set takes key=value",)),
+    (("--set", "hidden=1.5"), ("hidden takes an integer",)),
+    (("--ema", "1"), ("ema_decay must be in [0, 1)",)),
+    (("--node-input", "resp"), ("--node-input must be one of xyz, wall, response",)),
+    (("--config", "A1emma"), ("unknown --config 'A1emma'", "recommended")),
+])
+def test_bad_configuration_options_are_one_line(trained, tmp_path, args, words):
+    assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "r", "--no-ray", *args), *words)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_checkpoint_named_by_an_old_coded_name_loads_and_an_unknown_one_is_refused(trained, tmp_path):
+    """A checkpoint that names its configuration without listing the network's settings resolves the
+    name (a compatibility name included); one whose name is unknown, or whose settings this heartctl
+    does not know, is refused in one line."""
+    from trainer.config import TrainConfig, named_config
+
+    def named(name):
+        return lambda s: [s["train_config"].pop("model"), s["train_config"].update(config_name=name)]
+
+    old = _copied_run(trained, tmp_path, "old", named("paper"))
+    assert TrainConfig.from_dict(load_run(old)["train_config"]).model == named_config("paper")
+    r = run("evaluate", "--run", old, "--store", trained["store"], "--no-plots", "--out", tmp_path / "e")
+    assert r.exit_code == 0, r.output
+    old_coded = _copied_run(trained, tmp_path, "old_coded", named("A1ema-resp-d0"))
+    assert TrainConfig.from_dict(load_run(old_coded)["train_config"]).model == named_config("recommended")
+    unknown = _copied_run(trained, tmp_path, "unknown", named("B7"))
+    assert_bad_input(run("evaluate", "--run", unknown, "--store", trained["store"], "--no-plots"),
+                     "'B7' lists no network settings")
+    newer = _copied_run(trained, tmp_path, "newer", lambda s: s["train_config"]["model"].update(wings=2))
+    assert_bad_input(run("evaluate", "--run", newer, "--store", trained["store"], "--no-plots"),
+                     "wings", "unknown to this heartctl")
 
 
 def test_evaluate_against_a_reference_store(trained, tmp_path):

@@ -96,7 +96,9 @@ def check_contents(state: dict, path) -> None:
             raise bad(part, f"is a {type(state[part]).__name__}, not a {kind.__name__}")
     try:
         TrainConfig.from_dict(state["train_config"])
-    except Exception as exc:  # KeyError, TypeError, ValueError of a damaged dict
+    except TrainerError as exc:  # a configuration this heartctl cannot resolve, or a bad value
+        raise TrainerError(f"checkpoint {path}: its configuration does not resolve: {exc}") from None
+    except Exception as exc:  # KeyError, TypeError of a damaged dict
         raise bad("train_config", f"does not read back ({type(exc).__name__}: {str(exc)[:80]})") from None
     try:
         norm = Normalisation.from_dict(state["normalisation"])

@@ -2,6 +2,7 @@
 and of a training run, as frozen dataclasses that round-trip through plain dicts (checkpoints, JSON)."""
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
 
 
@@ -11,6 +12,14 @@ class TrainerError(ValueError):
 
 class TrainingDiverged(TrainerError):
     """The training loss (or validation loss) turned non-finite: every rank stops at the same epoch."""
+
+
+# the values of ModelConfig's choice fields
+MODEL_CHOICES = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
+                 "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
+                 "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
+                 "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall", "wall-response"),
+                 "output_scale": ("global", "load")}
 
 
 @dataclass(frozen=True)
@@ -84,16 +93,15 @@ class ModelConfig:
 
     def __post_init__(self):
         object.__setattr__(self, "decoder_hidden", tuple(int(v) for v in self.decoder_hidden))
-        choices = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
-                   "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),
-                   "decoder": ("mlp", "gat"), "kind": ("gnn", "pca"), "gat_kernel": ("sparse", "pyg"),
-                   "cycle_grad": ("both", "unloading", "teacher"), "node_features": ("xyz", "wall", "wall-response"),
-                   "output_scale": ("global", "load")}
-        for name, allowed in choices.items():
+        for name, allowed in MODEL_CHOICES.items():
             if getattr(self, name) not in allowed:
                 raise TrainerError(f"model {name} must be one of {', '.join(allowed)}, got {getattr(self, name)!r}")
-        if self.hidden < 1 or self.heads < 1 or self.layers < 1:
-            raise TrainerError("model hidden, heads and layers must be ≥ 1")
+        if min(self.hidden, self.heads, self.layers, self.param_hidden, self.pca_components, *self.decoder_hidden) < 1:
+            raise TrainerError("model hidden, heads, layers, param_hidden, pca_components and decoder_hidden must be ≥ 1")
+        if not self.decoder_hidden:
+            raise TrainerError("model decoder_hidden needs at least one layer width, e.g. 256,128")
+        if not all(math.isfinite(v) for v in (self.lambda_cycle, self.reverse_weight, self.pca_ridge)) or self.pca_ridge < 0:
+            raise TrainerError("model lambda_cycle, reverse_weight and pca_ridge must be finite, pca_ridge ≥ 0")
         if self.reverse_weight < 0 or self.lambda_cycle < 0 or self.cycle_rampup_epochs < 0:
             raise TrainerError("loss weights lambda_cycle, reverse_weight and cycle_rampup_epochs must be ≥ 0")
         if self.cycle_grad != "both" and self.cycle and self.reverse_weight <= 0:
@@ -140,12 +148,17 @@ class ModelConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "ModelConfig":
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
+        unknown = sorted(set(d) - {f.name for f in fields(cls)})
+        if unknown:
+            raise TrainerError(f"the network settings {', '.join(map(str, unknown))} are unknown to this heartctl "
+                               f"(written by a newer one?)")
+        return cls(**d)
 
 
 PAPER = ModelConfig()
-NAMED_CONFIGS: dict[str, ModelConfig] = {
+# The names `--config` offers: the seed paper's model, its ablations (A) and baselines (C), our cycle
+# variants (R) and the PCA baseline. Any other network is one of these plus options (compose).
+BASE_CONFIGS: dict[str, ModelConfig] = {
     "paper": PAPER,
     "multitoken": replace(PAPER, tokens="regional"),
     "A1": replace(PAPER, cycle=False),  # no cycle
@@ -157,7 +170,6 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     "C2": replace(PAPER, conv="sage"),
     "C5": replace(PAPER, decoder="gat"),
     "C6": replace(PAPER, pooling="max"),
-    "pca": replace(PAPER, kind="pca", cycle=False),
     # ours: the reverse (unloaded→ED) decoder also learns from the labelled pairs, so the cycle term
     # on unlabelled cases checks the unloading against a trained forward map (matters at low SR)
     "R1": replace(PAPER, reverse_weight=1.0),
@@ -174,48 +186,173 @@ NAMED_CONFIGS: dict[str, ModelConfig] = {
     # which is also the model validated and saved
     "R5": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="teacher", lambda_cycle=1.0,
                   ema_decay=0.99),
-    # A1 (no cycle) with the same weight average, the fair baseline for R5
-    "A1ema": replace(PAPER, cycle=False, ema_decay=0.99),
-    # A1ema with the wall coordinates (ζ, τ) as node input besides the coordinates
-    "A1ema-wall": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall"),
-    # A1ema-wall without dropout: a displacement regression wants every feature, and the weight
-    # average already smooths the step-to-step noise
-    "A1ema-wall-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall", dropout=0.0),
-    # A1ema-wall-d0 whose output is scaled by the case's expected displacement size (from P, C, θ)
-    "A1ema-wall-d0-load": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall", dropout=0.0,
-                                  output_scale="load"),
-    # A1ema-wall-d0 with the mesh's linear FE response as node input too
-    "A1ema-resp-d0": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0),
-    # A1ema-resp-d0 whose output is scaled by the case's expected displacement size (from P, C, θ),
-    # for loadings beyond the trained grid (a softer wall than any trained one)
-    "A1ema-resp-d0-load": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0,
-                                  output_scale="load"),
-    # the GCN baseline (A4) given the same inputs and recipe as A1ema-resp-d0: the fair test of attention
-    "A1ema-resp-d0-gcn": replace(PAPER, cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0,
-                                 conv="gcn"),
-    # R5 (the mean-teacher cycle) with A1ema-resp-d0's inputs, for the low-SR comparison on large
-    # stores: λ_cycle at half weight in the first epoch, full from the second (an SR 3 % epoch of the
-    # 60-shape paper grid is ~1,900 steps; R5's 10-epoch ramp was ~400 steps on the 20-shape store)
-    "R5-resp-d0": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=2, cycle_grad="teacher",
-                          lambda_cycle=1.0, ema_decay=0.99, node_features="wall-response", dropout=0.0),
+    "pca": replace(PAPER, kind="pca", cycle=False),
 }
-CONFIG_HELP = ("paper | multitoken | A1 (no cycle) | A2 (concat fusion) | A3 (no pooling) | A4 (GCN) | "
-               "A5 (params broadcast) | C0 (GATv2) | C2 (GraphSAGE) | C5 (GAT decoder) | C6 (max pool) | "
-               "R1 (reverse decoder supervised too) | R2 (R1, cycle ramped up) | "
-               "R3 (R2, cycle gradient to the unloading only) | R4 (R3, λ_cycle 1) | R5 (R4, mean teacher) | "
-               "A1ema (A1, weight average) | A1ema-wall (A1ema, wall coordinates as node input) | "
-               "A1ema-wall-d0 (A1ema-wall, no dropout) | "
-               "A1ema-wall-d0-load (A1ema-wall-d0, output scaled by the loading's displacement size) | "
-               "A1ema-resp-d0 (A1ema-wall-d0 plus the mesh's linear FE response as node input) | "
-               "A1ema-resp-d0-load (A1ema-resp-d0, output scaled by the loading's displacement size) | "
-               "A1ema-resp-d0-gcn (A1ema-resp-d0 with GCN layers) | R5-resp-d0 (R5 with A1ema-resp-d0's inputs) | pca")
+
+# `heartctl train` options that set one network field each: option → field
+OPTION_FIELDS = {"node-input": "node_features", "ema": "ema_decay", "dropout": "dropout",
+                 "output-scale": "output_scale", "layer": "conv"}
+NODE_INPUTS = {"xyz": "xyz", "wall": "wall", "response": "wall-response"}  # --node-input → node_features
+_RESPONSE_D0 = {"ema_decay": 0.99, "node_features": "wall-response", "dropout": 0.0}
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named network with the training options that go with it (TrainConfig fields)."""
+
+    model: ModelConfig
+    training: tuple = ()  # (TrainConfig field, value) pairs
+
+
+# recommended: the lowest measured error (docs/training.md, "Which configuration to use")
+PRESETS: dict[str, Preset] = {
+    "recommended": Preset(replace(BASE_CONFIGS["A1"], **_RESPONSE_D0), (("scale_pct", 8.0), ("lr_schedule", "cosine"))),
+}
+# Compatibility: the coded names of earlier releases (benchmark tables, run directories), each a
+# base plus settings; accepted by --config and resolved when a checkpoint names one.
+ALIASES: dict[str, tuple[str, dict]] = {
+    "A1ema": ("A1", {"ema_decay": 0.99}),
+    "A1ema-wall": ("A1", {"ema_decay": 0.99, "node_features": "wall"}),
+    "A1ema-wall-d0": ("A1", {"ema_decay": 0.99, "node_features": "wall", "dropout": 0.0}),
+    "A1ema-wall-d0-load": ("A1", {"ema_decay": 0.99, "node_features": "wall", "dropout": 0.0, "output_scale": "load"}),
+    "A1ema-resp-d0": ("A1", _RESPONSE_D0),
+    "A1ema-resp-d0-load": ("A1", {**_RESPONSE_D0, "output_scale": "load"}),
+    "A1ema-resp-d0-gcn": ("A1", {**_RESPONSE_D0, "conv": "gcn"}),
+    "R5-resp-d0": ("R5", {"node_features": "wall-response", "dropout": 0.0, "cycle_rampup_epochs": 2}),
+}
+CONFIG_HELP = ("Base network: paper (default) | multitoken | A1 (no cycle) A2 (concat fusion) A3 (no pooling) "
+               "A4 (GCN) A5 (parameters broadcast) | C0 (GATv2) C2 (GraphSAGE) C5 (GAT decoder) C6 (max pool) | "
+               "R1–R5 (cycle variants) | pca | recommended (A1 + node-input response, ema 0.99, dropout 0, with "
+               "--scale-pct 8 --lr-schedule cosine). Options below change it (docs/training.md: Configurations).")
+
+
+def _lookup(name) -> Preset | None:
+    key = str(name).lower()
+    for table in (BASE_CONFIGS, PRESETS, ALIASES):
+        hit = next((v for k, v in table.items() if k.lower() == key), None)
+        if isinstance(hit, ModelConfig):
+            return Preset(hit)
+        if isinstance(hit, tuple):
+            return Preset(replace(BASE_CONFIGS[hit[0]], **hit[1]))
+        if hit is not None:
+            return hit
+    return None
+
+
+def preset(name: str) -> Preset:
+    """The network and training options `--config NAME` starts from (case-insensitive)."""
+    found = _lookup(name)
+    if found is None:
+        raise TrainerError(f"unknown --config {name!r}; choose {', '.join([*BASE_CONFIGS, *PRESETS])}")
+    return found
 
 
 def named_config(name: str) -> ModelConfig:
-    key = {k.lower(): k for k in NAMED_CONFIGS}.get(str(name).lower())
-    if key is None:
-        raise TrainerError(f"unknown --config {name!r}; choose {', '.join(NAMED_CONFIGS)}")
-    return NAMED_CONFIGS[key]
+    """The network of `--config NAME` (a preset's network without its training options)."""
+    return preset(name).model
+
+
+# every name --config accepts → its network
+NAMED_CONFIGS: dict[str, ModelConfig] = {n: named_config(n) for n in (*BASE_CONFIGS, *PRESETS, *ALIASES)}
+# training fields `--set` may change (the others have options of their own)
+SET_TRAIN_KEYS = ("weight_decay", "lr_patience", "lr_factor")
+_TRAIN_DEFAULTS = {"weight_decay": 1e-4, "lr_patience": 10, "lr_factor": 0.5}
+
+
+def _convert(key: str, text: str, like):
+    """`text` as a value of the type of `like` (a field's default); TrainerError if it does not read."""
+    text = text.strip()
+    try:
+        if isinstance(like, bool):
+            value = {"true": True, "yes": True, "on": True, "1": True,
+                     "false": False, "no": False, "off": False, "0": False}[text.lower()]
+        elif isinstance(like, int):
+            value = int(text)
+        elif isinstance(like, float):
+            value = float(text)
+            if not math.isfinite(value):
+                raise ValueError
+        elif isinstance(like, tuple):
+            value = tuple(int(v) for v in text.split(","))
+        else:
+            value = text
+    except (KeyError, ValueError):
+        kind = {bool: "true or false", int: "an integer", float: "a finite number",
+                tuple: "comma-separated integers"}[type(like)]
+        raise TrainerError(f"--set {key}={text}: {key} takes {kind}") from None
+    return value
+
+
+def parse_settings(items) -> tuple[dict, dict]:
+    """`--set key=value` items → (network field changes, training field changes), each value read as
+    its field's type; TrainerError (one line) for a malformed item or a key no field has. Hyphens in
+    a key read as underscores."""
+    defaults = {f.name: f.default for f in fields(ModelConfig)}
+    model, training = {}, {}
+    for item in items:
+        key, sep, text = str(item).partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key:
+            raise TrainerError(f"--set takes key=value, e.g. --set hidden=64; got {item!r}")
+        if key in defaults:
+            model[key] = _convert(key, text, defaults[key])
+        elif key in SET_TRAIN_KEYS:
+            training[key] = _convert(key, text, _TRAIN_DEFAULTS[key])
+        else:
+            raise TrainerError(f"unknown --set key {key!r}; network keys: {', '.join(defaults)}; "
+                               f"training keys: {', '.join(SET_TRAIN_KEYS)} (the others have options of their own)")
+    return model, training
+
+
+def compose(name: str = "paper", *, node_input: str | None = None, ema: float | None = None,
+            dropout: float | None = None, output_scale: str | None = None, layer: str | None = None,
+            settings=()) -> tuple[ModelConfig, dict]:
+    """The network and training fields of `--config NAME` with options on top (None: not given):
+    the preset's own, then the named options, then the `--set` items. Validated by the dataclasses:
+    TrainerError (one line) for an unknown name, key or a bad value."""
+    start = preset(name)
+    changes = {}
+    for option, value, allowed in (("node-input", node_input, tuple(NODE_INPUTS)),
+                                   ("output-scale", output_scale, MODEL_CHOICES["output_scale"]),
+                                   ("layer", layer, MODEL_CHOICES["conv"])):
+        if value is not None and value not in allowed:
+            raise TrainerError(f"--{option} must be one of {', '.join(allowed)}, got {value!r}")
+    for option, value in (("node-input", NODE_INPUTS.get(node_input)), ("ema", ema), ("dropout", dropout),
+                          ("output-scale", output_scale), ("layer", layer)):
+        if value is not None:
+            changes[OPTION_FIELDS[option]] = value
+    model_sets, training_sets = parse_settings(settings)
+    model = replace(start.model, **{**changes, **model_sets})
+    return model, {**dict(start.training), **training_sets}
+
+
+def _shown(field: str, value) -> str:
+    if field == "node_features":
+        return {v: k for k, v in NODE_INPUTS.items()}[value]
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, tuple):
+        return ",".join(map(str, value))
+    return str(value)
+
+
+def describe_model(model: ModelConfig) -> str:
+    """The network in the terms of the train options: the nearest base configuration and what differs
+    from it, e.g. "A1 + node-input response, ema 0.99, dropout 0" (options first, `--set` keys after)."""
+    compared = ([f.name for f in fields(ModelConfig)] if model.kind == "gnn" else ["pca_components", "pca_ridge"])
+
+    def differences(base: ModelConfig) -> list:
+        return [k for k in compared if getattr(base, k) != getattr(model, k)]
+
+    names = [n for n, m in BASE_CONFIGS.items() if m.kind == model.kind]
+    base = min(names, key=lambda n: len(differences(BASE_CONFIGS[n])))  # the first on a tie
+    options = {f: o for o, f in OPTION_FIELDS.items()}
+    keys = sorted(differences(BASE_CONFIGS[base]), key=lambda k: list(options).index(k) if k in options else len(options))
+    parts = [f"{options[k]} {_shown(k, getattr(model, k))}" if k in options else f"{k}={_shown(k, getattr(model, k))}"
+             for k in keys]
+    return base + (" + " + ", ".join(parts) if parts else "")
 
 
 LR_SCHEDULES = ("plateau", "cosine")
@@ -275,6 +412,10 @@ class TrainConfig:
             raise TrainerError(f"--rotate-deg must be in [0, 180], got {self.rotate_deg}")
         if not 0 <= self.scale_pct <= 30:
             raise TrainerError(f"--scale-pct must be in [0, 30], got {self.scale_pct}")
+        if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
+            raise TrainerError(f"weight_decay must be a finite number ≥ 0, got {self.weight_decay}")
+        if self.lr_patience < 0 or not 0 < self.lr_factor < 1:
+            raise TrainerError(f"lr_patience must be ≥ 0 and lr_factor in (0, 1), got {self.lr_patience} and {self.lr_factor}")
 
     @property
     def data_seed(self) -> int:
@@ -296,9 +437,18 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "TrainConfig":
+        """Read back as_dict's output. A dict without the network's settings (none are written so)
+        resolves its config_name, old coded names included; TrainerError if that name is unknown."""
         names = {f.name for f in fields(cls)}
         d = {k: v for k, v in d.items() if k in names}
-        d["model"] = ModelConfig.from_dict(d.get("model", {}))
+        if isinstance(d.get("model"), dict):
+            d["model"] = ModelConfig.from_dict(d["model"])
+        else:
+            name = d.get("config_name", "paper")
+            if _lookup(name) is None:
+                raise TrainerError(f"configuration {name!r} lists no network settings and is not a name this heartctl "
+                                   f"knows; train it again")
+            d["model"] = named_config(name)
         return cls(**d)
 
     def identity(self) -> dict:
@@ -313,3 +463,22 @@ class TrainConfig:
         if self.labels_seed != self.data_seed:  # runs from before --label-seed keep their identity
             ident["label_seed"] = self.labels_seed
         return ident
+
+
+# the training fields a configuration line shows when they differ from their defaults (what is learned
+# and how; not epochs' budget, precision or threads)
+_SHOWN_TRAINING = ("split", "sr", "labelled_share", "train_fraction", "rotate_deg", "scale_pct", "seed", "split_seed",
+                   "label_seed", "batch_size", "lr", "lr_schedule", *SET_TRAIN_KEYS)
+
+
+def describe_run(cfg: TrainConfig) -> str:
+    """A run's configuration on one line: its network (describe_model), then the training options that
+    differ from their defaults, named after the preset it matches, e.g. "recommended = A1 + node-input
+    response, ema 0.99, dropout 0; scale-pct 8, lr-schedule cosine"."""
+    default = TrainConfig(store=cfg.store)
+    shown = [f"{k}={_shown(k, getattr(cfg, k))}" if k in SET_TRAIN_KEYS else f"{k.replace('_', '-')} {_shown(k, getattr(cfg, k))}"
+             for k in _SHOWN_TRAINING if getattr(cfg, k) != getattr(default, k)]
+    text = describe_model(cfg.model) + ("; " + ", ".join(shown) if shown else "")
+    named = next((n for n, p in PRESETS.items() if p.model == cfg.model
+                  and all(getattr(cfg, k) == v for k, v in p.training)), None)
+    return f"{named} = {text}" if named else text

@@ -11,7 +11,7 @@ import numpy as np
 from storage.store import PARAM_NAMES
 
 from .checkpoint import load_run
-from .config import TrainerError
+from .config import TrainerError, describe_run
 from .data import MeshFeatures, check_fingerprint, read_store, store_fingerprint
 from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
@@ -103,6 +103,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "response_ms_per_mesh": response_ms,
               "split": split, "rotations": pred.rotations, "members": len(pred.members),
               "config": " + ".join(m.cfg.config_name for m in pred.members), "kind": pred.kind,
+              "configuration": [describe_run(m.cfg) for m in pred.members],
               "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS},
               "labels_fidelity": cases.attrs.get("fidelity")}
