@@ -1,6 +1,7 @@
 """Total-Lagrangian residual and consistent tangent of the passive LV (or benchmark) problem:
-Guccione stress, incompressibility (mixed or penalty), follower pressure, supports and the
-rigid-motion gauge. Vectorised over elements and quadrature points; sparsity built once."""
+the Guccione law (from `material`), incompressibility (mixed or penalty), follower pressure,
+supports and the rigid-motion gauge. Vectorised over elements and quadrature points; sparsity built
+once. Tensor names, the fibre frame and the Voigt order are `material`'s."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -10,11 +11,7 @@ import scipy.sparse as sp
 
 from .elements import build_dofmap, cell_quadrature, facet_dofs, facet_quadrature
 from .fidelity import Fidelity
-from .material import FungParameters, green_lagrange, guccione_stress_tangent
-
-# the six fibre-frame index pairs a ≤ b (f, s, n) of the material tangent's symmetric part
-_PAIR_A = np.array([0, 1, 2, 0, 0, 1])
-_PAIR_B = np.array([0, 1, 2, 1, 2, 2])
+from .material import FungParameters, green_lagrange, guccione_response, voigt_frame_tensors
 
 
 @dataclass(frozen=True)
@@ -190,11 +187,16 @@ class MechanicsProblem:
         if frames.shape[:2] != self.cq.dV.shape:
             raise ValueError(f"fibre frames {frames.shape[:2]} do not match quadrature {self.cq.dV.shape}")
         self.frames = frames
-        # the Fung exponent's weights B_ab per pair a ≤ b, as the material tangent uses them
+        # fixed while the reference is: Rᵀ and ∇φ dV [e, q, a, I], and for `_displacement_tangent`
+        # ∇φ M_v [e, q, (v a), J], ∇φᵀ and ∇φᵀ dV [e, q, I, a] (numpy's batched matmul runs about
+        # twice as fast on contiguous operands as on transposed views)
+        ne, nq, na, _ = self.cq.grads.shape
+        self._frames_t = np.ascontiguousarray(np.swapaxes(frames, -1, -2))
+        self._voigt_grads = (self.cq.grads[:, :, None] @ voigt_frame_tensors(frames)).reshape(ne, nq, 6 * na, 3)
+        self._grads_dv = self.cq.grads * self.cq.dV[..., None, None]
+        self._grads_t = np.ascontiguousarray(np.swapaxes(self.cq.grads, -1, -2))
+        self._grads_t_dv = np.ascontiguousarray(np.swapaxes(self._grads_dv, -1, -2))
         B = self.material.exponent_weights()
-        if not np.array_equal(B, B.T):
-            raise ValueError("the Fung exponent weights B must be symmetric (Q = Σ B_ab E_ab²)")
-        self._pair_weights = np.where(_PAIR_A == _PAIR_B, 0.25, 0.5) * B[_PAIR_A, _PAIR_B]
         if self.mixed and fid.stabilization > 0:
             h2 = (6.0 * np.sqrt(2.0) * np.abs(self.cq.volumes)) ** (2.0 / 3.0)
             mu0 = 0.5 * self.material.stiffness_pa * B.mean()
@@ -273,11 +275,11 @@ class MechanicsProblem:
                                                    self.free.size)
 
     def pattern_blocks(self) -> list[ElementBlock]:
-        """The tangent's element blocks in the order `_assemble` concatenates their values: Kuu as
-        [e, i, a, j, b] (`_material_block`), the follower-load block as [f, b, c, i, j], the spring
-        as [f, b, i, c, j], K_up as [e, a, i, c], K_pu with the same values, K_pp as [e, c, d]."""
+        """The tangent's element blocks in the order `_assemble` lays out their values: Kuu as
+        [e, a, i, b, j] (`_displacement_tangent`), the follower-load block as [f, b, c, i, j], the
+        spring as [f, b, i, c, j], K_up as [e, a, i, c], K_pu with the same values, K_pp as [e, c, d]."""
         cell_nodes = self.dofmap.cell_dofs
-        blocks = [ElementBlock(cell_nodes, cell_nodes, 3, 3, "eiajb"),
+        blocks = [ElementBlock(cell_nodes, cell_nodes, 3, 3, "eaibj"),
                   ElementBlock(self.pdofs, self.pdofs, 3, 3, "eabij")]
         if self._spring is not None:
             spring_nodes = self._spring_udofs[:, ::3] // 3
@@ -342,15 +344,10 @@ class MechanicsProblem:
         u, p = self.split(z_full)
         cq, fid = self.cq, self.fidelity
         F = self.deformation_gradient(u)
-        E = green_lagrange(F)
         R = self.frames
-        Rt = np.swapaxes(R, -1, -2)
-        E_loc = Rt @ E @ R
-        S_loc, _ = guccione_stress_tangent(E_loc, self.material, with_tangent=False)
-        BE = self.material.exponent_weights() * E_loc
-        scale = self.material.stiffness_pa * np.exp(np.einsum("...ab,...ab->...", BE, E_loc))
-        S = R @ S_loc @ Rt
-        P = F @ S
+        F_loc = F @ R  # E_loc = Rᵀ E R = (F_locᵀ F_loc − I) / 2, P = F R S_loc Rᵀ
+        law = guccione_response(green_lagrange(F_loc), self.material)
+        P = F_loc @ law.stress @ self._frames_t
         J, cof = _det_cofactor(F)
         dV = cq.dV
         ne, nq = dV.shape
@@ -360,7 +357,7 @@ class MechanicsProblem:
         else:
             vol_coef = self.bulk_modulus_pa * (J - 1.0)
         P_total = P + vol_coef[..., None, None] * cof
-        Ru = ((cq.grads * dV[..., None, None]) @ np.swapaxes(P_total, -1, -2)).sum(axis=1).reshape(ne, -1)
+        Ru = (self._grads_dv @ np.ascontiguousarray(np.swapaxes(P_total, -1, -2))).sum(axis=1).reshape(ne, -1)
         full = np.zeros(self.n_full)
         np.add.at(full, self.cell_udofs.ravel(), Ru.ravel())
         if self.mixed:
@@ -386,38 +383,21 @@ class MechanicsProblem:
         min_J = float(J.min())
         if not with_tangent:
             return residual, None, min_J
-        # material + geometric tangent: A = s (M Bsym Mᵀ) + 2/s vec(P) vec(P)ᵀ + δ_ij S_IJ, where
-        # M[iI, ab] = (F R)_ia R_Ib and Bsym[ab, cd] = B_ab (δ_ac δ_bd + δ_ad δ_bc) / 2. B being
-        # symmetric, M Bsym Mᵀ = Σ_{a≤b} w_ab Y_ab Y_abᵀ with Y_ab = M[:, ab] + M[:, ba] and w_ab =
-        # B_ab / 2 (B_aa / 4): one 9×6 @ 6×9 product per point instead of two 9×9 @ 9×9
-        Fl = F @ R
-        Y = (Fl[..., :, None, _PAIR_A] * R[..., None, :, _PAIR_B]
-             + Fl[..., :, None, _PAIR_B] * R[..., None, :, _PAIR_A]).reshape(ne, nq, 9, 6)
-        A = scale[..., None, None] * ((Y * self._pair_weights) @ np.swapaxes(Y, -1, -2))
-        vecP = P.reshape(ne, nq, 9)
-        A += (2.0 / scale)[..., None, None] * vecP[..., :, None] * vecP[..., None, :]
-        A = A.reshape(ne, nq, 3, 3, 3, 3)
-        for i in range(3):  # geometric stiffness δ_ij S_IJ
-            A[..., i, :, i, :] += S
-        # d(cof F)_iI/dF_jJ = J (F⁻¹_Ii F⁻¹_Jj − F⁻¹_Ij F⁻¹_Ji) = (cof_iI cof_jJ − cof_jI cof_iJ) / J
-        outer = (vol_coef / J)[..., None, None, None, None] * cof[..., :, :, None, None] * cof[..., None, None, :, :]
-        A += outer
-        A -= np.swapaxes(outer, -4, -2)
         penalty = self.penalty_pa if self.mixed else self.bulk_modulus_pa
-        if penalty > 0:
-            A += penalty * np.einsum("eqiI,eqjJ->eqiIjJ", cof, cof)
-        Kuu = _material_block(cq.grads, A, dV)
+        entries = np.empty(self.pattern.position.size)  # in pattern order: Kuu first, written in place
+        n_uu = self.cell_udofs.size * self.cell_udofs.shape[1]
+        S = R @ law.stress @ self._frames_t
+        H = self._displacement_tangent(F, law, S, P, cof, vol_coef / J, penalty, out=entries[:n_uu])
         # pressure-load tangent: d n / d x_c = −ξ1_c [a2]x + ξ2_c [a1]x, as [f, b, c, i, j]
         sk1, sk2 = _skew(a1), _skew(a2)
         d1, d2 = (fq.dxi[:, k].T[None, :, :, None, None] for k in (0, 1))  # [1, q, c, 1, 1]
         dn = d2 * sk1[:, :, None] - d1 * sk2[:, :, None]
         Kf = (pressure_pa * fq.values * fq.weights) @ dn.reshape(*dn.shape[:2], 9 * dn.shape[2])
-        values = [Kuu.ravel(), Kf.ravel()]
+        values = [Kf.ravel()]
         if self._spring is not None:
             values.append(self._spring.ravel())
         if self.mixed:
-            cof_grad = (cq.grads * dV[..., None, None]) @ np.swapaxes(cof, -1, -2)  # [e, q, a, i]
-            Kup = np.moveaxis(cof_grad, 1, -1) @ cq.lam.T  # [e, a, i, c]
+            Kup = np.swapaxes(H * dV[..., None], 1, 2) @ cq.lam.T  # ∫ (cof F ∇φ_a)_i ψ_c dV: [e, (a i), c]
             Kpp = -inv_k * np.einsum("cq,dq,eq->ecd", cq.lam, cq.lam, dV)
             if self._stab is not None:
                 Kpp = Kpp - self._stab
@@ -425,28 +405,75 @@ class MechanicsProblem:
             values += [Kup_flat.ravel(), Kup_flat.ravel(), Kpp.ravel()]
         if self.n_gauge:
             values += [self._gauge_values, self._gauge_values]
-        K = self.pattern.matrix(np.concatenate(values))
+        np.concatenate(values, out=entries[n_uu:])
+        K = self.pattern.matrix(entries)
         return residual, K, min_J
 
+    def _displacement_tangent(self, F, law, S, P, cof, vol_over_J, penalty, out):
+        """Writes Kuu [e, a, i, b, j] = Σ_q dV ∇φ_a,I ∂(P + vol cof F)_iI/∂F_jJ ∇φ_b,J to `out` (flat),
+        vol = p + κ_pen (J − 1) (mixed) or κ (J − 1) (penalty form), and returns H [e, q, (a i)] =
+        (cof F ∇φ_a)_i, K_up's integrand per unit volume.
 
-def _material_block(grads: np.ndarray, A: np.ndarray, dV: np.ndarray) -> np.ndarray:
-    """K[e, i, a, j, b] = Σ_q dV G[e,q,a,I] A[e,q,i,I,j,J] G[e,q,b,J] (G: shape-function gradients
-    [e, q, a, I]; A: ∂P/∂F [e, q, i, I, j, J]) as two batched matmuls. In this order nothing is
-    transposed or copied (the pattern lists its entries so): 1.4 ms against 7.8 ms for the two
-    einsums in [e, a, i, b, j] order with their copy, on 2,786 linear tets."""
+        ∂P/∂F = ∂ε/∂Fᵀ D_v ∂ε/∂F + δ_ij S_IJ with the law's D_v = diag(d) + c σσᵀ, and ∂ε/∂F · σ = P;
+        ∂(cof F)_iI/∂F_jJ = (cof_iI cof_jJ − cof_jI cof_iJ) / J. All but the geometric term and the
+        second cofactor term are sums of outer products w_k U_k ⊗ U_k over (a i), (b j), with
+        U_v = ∇φ M_v Fᵀ (∂ε_v/∂u), U_6 = ∇φ Pᵀ, U_7 = ∇φ cof Fᵀ = H and w = dV (d, c, vol/J + κ_pen)
+        (κ_pen → κ in the penalty form):
+        one batched matmul per element over (q, k).
+
+        Elements go in chunks whose U takes about 256 KiB, so that a chunk's products stay in cache:
+        on 2,786 P2 tets, 26 ms of CPU against 45 ms for all elements at once (2-core box)."""
+        ne, nq, na, _ = self.cq.grads.shape
+        dV = self.cq.dV
+        w = np.empty((ne, nq, 8))
+        w[..., :6] = law.tangent_diagonal
+        w[..., 6] = law.tangent_rank_one
+        w[..., 7] = vol_over_J + penalty
+        w *= dV[..., None]
+        swap_w = vol_over_J * dV
+        H = np.empty((ne, nq, 3 * na))
+        Kuu = out.reshape(ne, 3 * na, 3 * na)
+        step = max(1, 2 ** 15 // (nq * 8 * 3 * na))  # elements per chunk
+        for start in range(0, ne, step):
+            c = slice(start, start + step)
+            H[c] = _displacement_chunk(F[c], S[c], P[c], cof[c], w[c], swap_w[c], self._voigt_grads[c],
+                                       self.cq.grads[c], self._grads_t[c], self._grads_t_dv[c], Kuu[c])
+        return H
+
+
+def _displacement_chunk(F, S, P, cof, w, swap_w, voigt_grads, grads, grads_t, grads_t_dv, K):
+    """`MechanicsProblem._displacement_tangent` on a chunk of elements: Kuu into K [e, (a i), (b j)],
+    returns H [e, q, (a i)]."""
     ne, nq, na, _ = grads.shape
-    GA = (grads * dV[..., None, None])[:, :, None] @ A.reshape(ne, nq, 3, 3, 9)  # [e, q, i, a, (j J)]
-    K = GA.reshape(ne, nq, 3 * na * 3, 3) @ np.swapaxes(grads, -1, -2)  # [e, q, (i a j), b]
-    return K.sum(axis=1) if nq > 1 else K[:, 0]
+    U = np.empty((ne, nq, 8 * na, 3))  # [e, q, (k a), i]
+    np.matmul(voigt_grads, np.swapaxes(F, -1, -2), out=U[:, :, : 6 * na])
+    np.matmul(grads, np.swapaxes(P, -1, -2), out=U[:, :, 6 * na : 7 * na])
+    np.matmul(grads, np.swapaxes(cof, -1, -2), out=U[:, :, 7 * na :])
+    U = U.reshape(ne, nq * 8, 3 * na)
+    np.matmul(np.swapaxes(U, 1, 2), U * w.reshape(ne, nq * 8, 1), out=K)
+    K = K.reshape(ne, na, 3, na, 3)
+    H = U.reshape(ne, nq, 8, 3 * na)[:, :, 7]
+    swapped = np.swapaxes(H, 1, 2) @ (H * swap_w[..., None])  # Σ_q c H[a, i] H[b, j]
+    K -= swapped.reshape(ne, na, 3, na, 3).transpose(0, 1, 4, 3, 2)  # −Σ_q c H[a, j] H[b, i]
+    S_grads = (S @ grads_t).reshape(ne, nq * 3, na)  # [e, (q I), b]
+    geometric = np.swapaxes(grads_t_dv.reshape(ne, nq * 3, na), 1, 2) @ S_grads  # Σ_q dV ∇φ_a S ∇φ_b
+    for i in range(3):
+        K[:, :, i, :, i] += geometric
+    return H
 
 
 def _det_cofactor(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """J = det F and cof F = J F⁻ᵀ = ∂J/∂F for F [..., 3, 3], from cross products of F's columns
-    (no inversion: finite where F is singular; 0.4 ms against 1.5 ms for np.linalg.det + inv on
-    2,786 points)."""
-    f0, f1, f2 = F[..., :, 0], F[..., :, 1], F[..., :, 2]
-    cof = np.stack([np.cross(f1, f2), np.cross(f2, f0), np.cross(f0, f1)], axis=-1)
-    J = np.einsum("...i,...i->...", f0, cof[..., :, 0])
+    """J = det F and cof F = J F⁻ᵀ = ∂J/∂F for F [..., 3, 3]: the columns of cof F are the cross
+    products of F's columns (f1 × f2, f2 × f0, f0 × f1), written out component by component (no
+    inversion: finite where F is singular). On 11,144 points: 0.44 ms, against 0.89 ms through
+    np.cross and 4.9 ms for np.linalg.det + inv."""
+    f = [[F[..., i, j] for j in range(3)] for i in range(3)]  # f[i][j] = F_ij
+    cof = np.empty(F.shape)
+    for col, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):  # column a × column b
+        cof[..., 0, col] = f[1][a] * f[2][b] - f[2][a] * f[1][b]
+        cof[..., 1, col] = f[2][a] * f[0][b] - f[0][a] * f[2][b]
+        cof[..., 2, col] = f[0][a] * f[1][b] - f[1][a] * f[0][b]
+    J = f[0][0] * cof[..., 0, 0] + f[1][0] * cof[..., 1, 0] + f[2][0] * cof[..., 2, 0]
     return J, cof
 
 
