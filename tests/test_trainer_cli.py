@@ -99,7 +99,8 @@ def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
 
     seen = {}
 
-    def fake_inverse(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None, fibres="laplace"):
+    def fake_inverse(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None, fibres="laplace",
+                     max_updates=None):
         seen.update(fidelity=fidelity, base=base, fibres=fibres, guess=initial_unloaded)
         return type("R", (), {"unloaded_nodes": mesh.nodes.copy()})()
 
@@ -122,7 +123,7 @@ def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(t
     calls = []
 
     def inverse_failing_from_a_guess(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None,
-                                     fibres="laplace"):
+                                     fibres="laplace", max_updates=None):
         calls.append(initial_unloaded is not None)
         if initial_unloaded is not None:
             raise SolveError("step size collapsed at 0.0% of load")
