@@ -538,7 +538,9 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
                 user_nodes: int = typer.Option(800, "--user-nodes", help="Second mesh size, as users bring (0: the training resolution only)."),
                 out: Path = typer.Option(None, "--out", help="Report folder (default RUN/trade: where unload --method auto looks); "
                                                              "solves/ there keeps the reference solves, so a rerun resumes."),
-                threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver.")):
+                threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver."),
+                network_only: bool = typer.Option(False, "--network-only", help="Score the network (and the ensemble) "
+                                                  "alone: no FE or hybrid methods.")):
     """The speed–accuracy trade: held-out ED meshes unloaded by FE (fast, accurate), the network, and the
     network's guess refined by 1, 2, 4 inverse updates or to tolerance, each against the converged
     solution (the reference preset). Writes trade.md, trade.png and trade.json (read by --method auto)."""
@@ -547,7 +549,7 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
 
     out = out or run[0] / "trade"
     try:
-        spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes).validate()
+        spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes, network_only=network_only).validate()
         result = run_trade(spec, out / "solves", progress=typer.echo)
     except _trainer_errors() as exc:
         fail(str(exc))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -133,6 +134,10 @@ def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):
     paths = write_report(result, trained / "trade")
     assert paths["plot"].stat().st_size > 0 and "| training" in paths["markdown"].read_text()
     assert json.loads(paths["json"].read_text())["summary"]
+    # --network-only: the network scored against the same (cached) reference, no FE or hybrid method
+    alone = run_trade(replace(spec, network_only=True), tmp_path / "solves")
+    assert [r["method"] for r in alone["rows"]] == ["gnn"] and alone["hybrid_goal"] == {"cases": 0}
+    assert alone["rows"][0]["mean_mm"] == pytest.approx(rows["gnn"]["mean_mm"])
 
 
 def test_unload_auto_and_check(trained, tmp_path):

@@ -40,7 +40,8 @@ class TradeSpec:
     """What `bench trade` measures. shapes: held-out shapes (ids after the run's last); cases: the mid
     of the run's parameter box, then its corners, hardest first; user_nodes: the second mesh size
     (0: the training resolution only); hybrid_updates: the budgets of the network-guess hybrids;
-    check_preset: the preset of the a-posteriori re-inflation."""
+    check_preset: the preset of the a-posteriori re-inflation; network_only: score the network (and
+    its ensemble) alone, no FE or hybrid methods."""
 
     runs: tuple[str, ...]
     shapes: int = 2
@@ -48,6 +49,7 @@ class TradeSpec:
     user_nodes: int = 800
     hybrid_updates: tuple[int, ...] = (1, 2, 4)
     check_preset: str = "accurate"
+    network_only: bool = False
 
     def validate(self) -> "TradeSpec":
         if not self.runs:
@@ -146,6 +148,8 @@ def _inverse_answer(method: str, ed: TetMesh, params: CaseParameters, preset: st
 def method_names(spec: TradeSpec, ensemble: bool) -> list[str]:
     """Every method the table compares, cheapest family first."""
     names = ["gnn"] + (["gnn ensemble"] if ensemble else [])
+    if spec.network_only:
+        return names
     names += [f"fe {p}" for p in PRESETS]
     names += [f"hybrid {p} +{k}" for p in PRESETS for k in spec.hybrid_updates]
     names += [f"hybrid {p} to tol" for p in PRESETS]
@@ -185,6 +189,8 @@ def solve_case(case: HeldOutCase, ed: TetMesh, predictors: dict, spec: TradeSpec
         answers.append(Answer(label, unloaded, net_s, net_s))
         if label == "gnn":
             guess, guess_s = unloaded, net_s
+    if spec.network_only:
+        return answers
     try:
         check_geometry(guess, ed.tets)
         usable = guess
