@@ -69,17 +69,21 @@ def reading_store(location, keep: tuple = ()):
     CRC-32C, or raises RuntimeError from its decompressor) as one-line StoreErrors, which the CLI
     reports with exit 2 and Ray Train workers refuse at once instead of retrying. StoreErrors, the
     exception types in `keep` and programming errors (TypeError, AttributeError, NameError) pass
-    unchanged, except a checksum mismatch (a ValueError in zarr), which is always damage."""
+    unchanged, except a checksum mismatch (a ValueError in zarr), which is always damage, and an
+    object store's refusal or silence (object_store_problem), which is said in words."""
     try:
         yield
     except Exception as exc:
         if _is_checksum_error(exc):
             raise StoreError(f"cannot read store {location}: a stored chunk is damaged (its checksum does not "
                              f"match)") from None
-        if isinstance(exc, (StoreError, TypeError, AttributeError, NameError, *keep)):
+        if isinstance(exc, (StoreError, TypeError, AttributeError, NameError)):
             raise
-        reason = f"missing {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args else \
-            (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        reason = object_store_problem(location, exc)
+        if reason is None and isinstance(exc, keep):
+            raise
+        reason = reason or (f"missing {exc.args[0]!r}" if isinstance(exc, KeyError) and exc.args else
+                            (str(exc).splitlines()[0] if str(exc) else type(exc).__name__))
         raise StoreError(f"cannot read store {location}: {reason}") from None
 
 
@@ -103,10 +107,103 @@ def _open_group(location, mode: str, storage_options: dict | None = None):
     import zarr
 
     if is_url(location):
-        return zarr.open_group(str(location), mode=mode, zarr_format=3, storage_options=storage_options)
+        return zarr.open_group(str(location), mode=mode, zarr_format=3,
+                               storage_options=url_options(location, storage_options))
     from zarr.storage import LocalStore
 
     return zarr.open_group(LocalStore(_local_path(location), read_only=(mode == "r")), mode=mode, zarr_format=3)
+
+
+# --------------------------------------------------------------------------- object stores (s3://)
+
+ENDPOINT_VARS = ("AWS_ENDPOINT_URL_S3", "AWS_ENDPOINT_URL")  # botocore's names, the service's own first
+
+
+def s3_endpoint(storage_options: dict | None = None) -> str | None:
+    """The S3-compatible server an s3:// store is opened at (MinIO, Ceph, moto): the options' own
+    endpoint_url, else AWS_ENDPOINT_URL_S3, else AWS_ENDPOINT_URL; None means AWS itself."""
+    given = (storage_options or {}).get("endpoint_url")
+    return given or next((os.environ[v] for v in ENDPOINT_VARS if os.environ.get(v)), None)
+
+
+def url_options(location, storage_options: dict | None = None) -> dict | None:
+    """fsspec options of a store URL. For s3://, the endpoint of s3_endpoint (older botocore does not
+    read the variables itself), and no cached listings, so that a reader sees the shapes a running
+    sweep adds; credentials and region come from the usual AWS variables (AWS_ACCESS_KEY_ID,
+    AWS_SECRET_ACCESS_KEY, AWS_DEFAULT_REGION) or an instance profile, read by botocore."""
+    options = dict(storage_options or {})
+    if not str(location).startswith("s3://"):
+        return options or None
+    endpoint = s3_endpoint(options)
+    if endpoint:
+        options["endpoint_url"] = endpoint
+    options.setdefault("use_listings_cache", False)
+    return options
+
+
+def _exception_chain(exc: BaseException):
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
+CREDENTIAL_CODES = frozenset({"InvalidAccessKeyId", "SignatureDoesNotMatch", "AccessDenied", "Forbidden", "403",
+                              "ExpiredToken", "InvalidToken", "InvalidClientTokenId"})
+UNREACHABLE_ERRORS = frozenset({"EndpointConnectionError", "ConnectTimeoutError", "ReadTimeoutError",
+                                "ClientConnectorError", "ServerDisconnectedError", "ConnectionClosedError"})
+
+
+def object_store_problem(location, exc: BaseException) -> str | None:
+    """What an object store (s3://) said, in words, when exc (or an error it was raised from) is its
+    refusal or its silence: a missing bucket, credentials refused or missing, an endpoint that does
+    not answer. None for a local store and for any other error."""
+    if not str(location).startswith("s3://"):
+        return None
+    server = _server()
+    for e in _exception_chain(exc):
+        name = type(e).__name__
+        code = str(((getattr(e, "response", None) or {}).get("Error") or {}).get("Code", ""))
+        if name == "NoSuchBucket" or code == "NoSuchBucket" or "bucket does not exist" in str(e):
+            return f"its bucket {_bucket(location)!r} does not exist on {server}; create it or fix the URL"
+        if name in ("NoCredentialsError", "PartialCredentialsError"):
+            return (f"no AWS credentials found for {server}; set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY "
+                    f"(or use an instance profile)")
+        if code in CREDENTIAL_CODES or isinstance(e, PermissionError):
+            return (f"{server} refused access ({_first_line(e)}); check AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY "
+                    f"and the bucket's permissions")
+        if name in UNREACHABLE_ERRORS or isinstance(e, (ConnectionError, TimeoutError)):
+            return (f"{server} does not answer ({_first_line(e)[:120]})"
+                    + ("" if s3_endpoint() else "; an S3-compatible server is named by AWS_ENDPOINT_URL"))
+    return None
+
+
+def _bucket(location) -> str:
+    return str(location)[len("s3://"):].split("/", 1)[0]
+
+
+def _check_bucket(location, storage_options: dict | None = None) -> None:
+    """StoreError when the bucket of an s3:// store is missing or refuses these credentials: an s3://
+    URL where no store is yet is a new store only in a bucket that exists."""
+    import fsspec
+
+    if not str(location).startswith("s3://"):
+        return
+    fs = fsspec.filesystem("s3", **(url_options(location, storage_options) or {}))
+    try:
+        fs.info(_bucket(location))
+    except Exception as exc:
+        problem = (f"its bucket {_bucket(location)!r} does not exist on {_server()}; create it or fix the URL"
+                   if isinstance(exc, FileNotFoundError) else object_store_problem(location, exc))  # 404: head_bucket's
+        if problem is None:
+            raise
+        raise StoreError(f"store {location}: {problem}") from None
+
+
+def _server() -> str:
+    where = s3_endpoint()
+    return f"the S3 endpoint {where}" if where else "S3"
 
 
 LOCK_NAME = ".heartctl-writer.lock"  # the writer lock's file in a local store (storage.lock)
@@ -130,12 +227,13 @@ def inspect_store(location, storage_options: dict | None = None) -> dict | None:
             raise StoreError(f"{path} is a non-empty folder that is not a Zarr 3 store")
     try:
         root = _open_group(location, "r", storage_options)
-    except FileNotFoundError:
-        return None
     except Exception as exc:  # zarr raises several types for missing / unreadable groups
-        if type(exc).__name__ in ("GroupNotFoundError", "NodeNotFoundError"):
+        if isinstance(exc, FileNotFoundError) or type(exc).__name__ in ("GroupNotFoundError", "NodeNotFoundError"):
+            _check_bucket(location, storage_options)
             return None
-        raise StoreError(f"cannot open {location} as a Zarr 3 group: {_first_line(exc)}") from None
+        problem = object_store_problem(location, exc)
+        raise StoreError(f"store {location}: {problem}" if problem else
+                         f"cannot open {location} as a Zarr 3 group: {_first_line(exc)}") from None
     attrs = dict(root.attrs)
     if attrs.get("schema") != SCHEMA:
         found = attrs.get("schema", "none")
