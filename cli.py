@@ -1317,7 +1317,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
             return
         _print_plan(plan)
         return
-    from orchestrator.sweep import CONNECT_TIMEOUT_S, RayConnectError, StoreFullError, init_ray, run_sweep
+    from orchestrator.sweep import CONNECT_TIMEOUT_S, RayConnectError, StoreFullError, StoreLostError, init_ray, \
+        run_sweep
 
     if left is not None and not retry_damaged:  # damage is found by reading every case, in the sweep
         if left["to_run"] == 0:
@@ -1346,7 +1347,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     except _store_errors() as exc:
         ray.shutdown()
         fail(str(exc))
-    except StoreFullError as exc:  # not bad input: exit 1, like a solve that fails
+    except (StoreFullError, StoreLostError) as exc:  # not bad input: exit 1, like a solve that fails
         ray.shutdown()
         fail(str(exc), code=1)
     except KeyboardInterrupt:

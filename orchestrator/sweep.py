@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from storage.lock import LOCK_NAME, WriterLock, check_free
-from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, stats_row
+from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, object_store_problem, stats_row
 
 from .grid import MAX_CHAIN, SweepSpec, pressure_chains
 
@@ -49,6 +49,18 @@ class StoreFullError(RuntimeError):
         self.location, self.written = location, written
         cases = f"the {written} cases written are intact" if written is not None else "the cases marked done are intact"
         super().__init__(f"disk full writing {location}; {cases}, free space and rerun the same command to resume")
+
+
+class StoreLostError(RuntimeError):
+    """The object store (s3://) stopped answering, or refused a write, during a sweep. Cases marked
+    done before are intact (a case is marked only after its chunks were written and read back, and
+    every object is put whole), so rerunning the same command once the store answers resumes. The
+    message is one line, naming the store and what its server said."""
+
+    def __init__(self, location: str, problem: str):
+        self.location, self.problem = location, problem
+        super().__init__(f"lost the object store while writing {location}: {problem}; the cases marked done are "
+                         f"intact, rerun the same command to resume once it answers")
 
 
 def _is_disk_full(exc: BaseException) -> bool:
@@ -423,7 +435,8 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     `max_in_flight` counts tasks (default: InFlightLimit, twice the cluster's CPUs as nodes join).
     `retry_damaged`: first read every done case back and mark those whose chunks are damaged
     (checksum mismatch) pending, so that they are recomputed. A full disk (ENOSPC, EDQUOT) while
-    writing the store raises StoreFullError (one line; the cases already written are intact)."""
+    writing the store raises StoreFullError, an object store that stops answering or refuses a write
+    StoreLostError (one line each; the cases already written are intact)."""
     import ray
 
     if not ray.is_initialized():
@@ -440,6 +453,9 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
         finally:
             lock.release()
     except Exception as exc:
+        problem = object_store_problem(location, exc)
+        if problem is not None:
+            raise StoreLostError(str(location), problem) from None
         if not _is_disk_full(exc):
             raise
         raise StoreFullError(str(location), _cases_on_disk(location)) from None
