@@ -447,6 +447,7 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
     import importlib
     import logging
     import logging.config
+    import threading
 
     from trainer.ray_train import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
 
@@ -454,6 +455,7 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
     hook = getattr(importlib.import_module(module), name)
     loggers = [logging.getLogger(n) for n in LOCAL_RAY_NOISY_LOGGERS]
     before = [list(lg.filters) for lg in loggers]
+    excepthook_before = threading.excepthook
     try:
         hook()
         hook()  # idempotent
@@ -463,9 +465,25 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
             assert lg.filter(logging.makeLogRecord({"levelno": logging.WARNING})) is False
             assert lg.filter(logging.makeLogRecord({"levelno": logging.ERROR}))
             assert len(lg.filters) == len(before[loggers.index(lg)]) + 1
+        # the cleaner thread's ConnectionError (no State API without a dashboard) prints nothing; any
+        # other thread's exception, or another exception of that thread, still reaches the old hook
+        seen = []
+        threading.excepthook = lambda args: seen.append((args.thread.name, args.exc_type))
+        hook()
+        for thread_name, exc in (("PlacementGroupCleanerMonitor", ConnectionError), ("worker", ConnectionError),
+                                 ("PlacementGroupCleanerMonitor", ValueError)):
+            t = threading.Thread(target=_raise, args=(exc,), name=thread_name)
+            t.start()
+            t.join()
+        assert seen == [("worker", ConnectionError), ("PlacementGroupCleanerMonitor", ValueError)]
     finally:
+        threading.excepthook = excepthook_before
         for lg, filters in zip(loggers, before):
             lg.filters = filters
+
+
+def _raise(exc_type):
+    raise exc_type("test")
 
 
 def test_local_ray_turns_off_the_preemption_watcher_by_rays_own_name():

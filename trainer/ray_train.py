@@ -41,12 +41,35 @@ def errors_only(record: logging.LogRecord) -> bool:
     return record.levelno >= logging.ERROR
 
 
+# The placement-group cleaner's monitor thread asks the State API whether the controller lives; without a
+# dashboard, on a busy box, that call can raise ConnectionError (which the loop does not catch) instead of
+# the State API error it does, and the thread ends with a traceback on the driver's terminal. Ray shuts
+# the whole local cluster down with the run, placement groups included, so nothing is left to clean.
+PG_CLEANER_THREAD = "PlacementGroupCleanerMonitor"
+
+
+def _silence_pg_cleaner_without_dashboard(previous):
+    """A threading.excepthook that drops the cleaner thread's ConnectionError and passes on the rest."""
+    def hook(args):
+        if getattr(args.thread, "name", "") == PG_CLEANER_THREAD and issubclass(args.exc_type, ConnectionError):
+            return
+        previous(args)
+
+    hook.silences_pg_cleaner = True
+    return hook
+
+
 def quieten_local_ray() -> None:
-    """worker_process_setup_hook for a dashboard-less local Ray: only errors from those two loggers."""
+    """worker_process_setup_hook for a dashboard-less local Ray: only errors from those two loggers,
+    and no traceback from the placement-group cleaner's thread failing to reach the State API."""
+    import threading
+
     for name in LOCAL_RAY_NOISY_LOGGERS:
         logger = logging.getLogger(name)
         if errors_only not in logger.filters:
             logger.addFilter(errors_only)
+    if not getattr(threading.excepthook, "silences_pg_cleaner", False):
+        threading.excepthook = _silence_pg_cleaner_without_dashboard(threading.excepthook)
 
 
 # The INFO lines of every ray.train.report in a worker ("Checkpoint successfully created at: …" once an
