@@ -174,7 +174,7 @@ def object_store_problem(location, exc: BaseException) -> str | None:
             return (f"{server} refused access ({_first_line(e)}); check AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY "
                     f"and the bucket's permissions")
         if name in UNREACHABLE_ERRORS or isinstance(e, (ConnectionError, TimeoutError)):
-            return (f"{server} does not answer ({_first_line(e)[:120]})"
+            return (f"{server} does not answer ({name})"
                     + ("" if s3_endpoint() else "; an S3-compatible server is named by AWS_ENDPOINT_URL"))
     return None
 
