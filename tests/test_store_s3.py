@@ -68,10 +68,15 @@ class S3Server:
 
 
 def _fresh_filesystems() -> None:
-    """s3fs caches a filesystem (and its credentials) per set of options: drop them when the
-    environment changes."""
+    """s3fs caches a filesystem (and its credentials) per set of options: close and drop them when
+    the environment changes."""
     import s3fs
+    from zarr.core.sync import sync
 
+    for fs in list(getattr(s3fs.S3FileSystem, "_cache", {}).values()):
+        client = getattr(fs, "_s3creator", None)
+        if client is not None and fs.asynchronous:  # zarr's, on zarr's event loop
+            sync(client.__aexit__(None, None, None))
     s3fs.S3FileSystem.clear_instance_cache()
 
 
@@ -274,6 +279,24 @@ def test_a_missing_bucket_is_one_line(s3, tmp_path):
         _assert_one_line(r, 2, *words)
         assert r.stderr.strip().splitlines() == _error_lines(r)  # nothing else: refused before Ray or torch ran
     assert not (tmp_path / "run").exists() and not (tmp_path / "c.vtu").exists()
+
+
+def test_an_endpoint_that_does_not_answer_is_one_line(s3, monkeypatch):
+    import socket
+
+    with socket.socket() as probe:  # a loopback port where nothing listens
+        probe.bind(("127.0.0.1", 0))
+        closed = f"http://127.0.0.1:{probe.getsockname()[1]}"
+    monkeypatch.setenv("AWS_ENDPOINT_URL", closed)
+    _fresh_filesystems()
+    try:
+        for args in (ARGS + ["--store", _url("silent/pairs.zarr")], ["status", "--store", _url("cli/pairs.zarr")]):
+            r = runner.invoke(app, args)
+            line = _assert_one_line(r, 2, f"the S3 endpoint {closed} does not answer (EndpointConnectionError)")
+            assert r.stderr.strip().splitlines() == [line]
+    finally:
+        monkeypatch.undo()
+        _fresh_filesystems()
 
 
 @pytest.fixture
