@@ -754,135 +754,81 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                              "a few minutes to compile, then faster steps)."),
           as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON (the last line of stdout).")):
     """Train HeartUnloadNet (or an ablation / baseline) on a store; Ray Train DDP, or --no-ray."""
-    from storage.store import StoreError, inspect_store
-    from trainer.checkpoint import load_checkpoint, run_checkpoint_path
-    from trainer.config import TrainConfig, TrainerError, compose, describe_model
-    from trainer.data import check_split, training_data
-    from trainer.loop import check_resumable, check_same_run
-    from trainer.splits import parse_split
+    from orchestrator.ray_session import RayAddress
+    from trainer.launch import Placement, prepare_training
 
     try:
-        model, training = compose(config, node_input=node_input, ema=ema, dropout=dropout, output_scale=output_scale,
-                                  layer=layer, settings=settings or ())
-        training.update({k: v for k, v in (("scale_pct", scale_pct), ("lr_schedule", lr_schedule)) if v is not None})
-        if local and (gpus or address):
-            raise TrainerError("--local runs two CPU workers on a local Ray; it takes no --gpus or --address")
-        if no_ray and (local or address or gpus):
-            raise TrainerError("--no-ray trains in this process; drop --local, --address and --gpus (use --device)")
-        if gpus < 0 or workers < 1 or max_failures < 0 or patience < 1 or not 0 < lr < float("inf"):
-            raise TrainerError("--gpus ≥ 0, --workers ≥ 1, --max-failures ≥ 0, --patience ≥ 1 and a finite --lr > 0 "
-                               "are required")
-        if device not in (None, "cpu", "cuda"):
-            raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
-        _check_connect_timeout(connect_timeout, address)
-        parse_split(split)
-        from storage.store import is_url
-
-        if not is_url(store):  # Ray Train workers run in their own working directory
-            store = str(Path(store).resolve())
-        shown_dir, run_dir = run_dir, run_dir.resolve()  # the user's spelling in the last line
-        cfg = TrainConfig(store=store, config_name=describe_model(model), model=model, split=split, sr=sr,
-                          train_fraction=train_fraction, labelled_share=labelled_share, seed=seed, split_seed=split_seed,
-                          label_seed=label_seed, rotate_deg=rotate_deg, epochs=epochs if epochs is not None else (5 if local else 500),
-                          batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model, **training)
-        if inspect_store(store) is None:
-            raise StoreError(f"no heartctl store at {store}")
-        nearest = next(p for p in (run_dir, *run_dir.parents) if p.exists())  # made with its parents when training starts
-        if not nearest.is_dir():
-            raise TrainerError(f"--run-dir {run_dir}: {nearest} is a file")
-        if not os.access(nearest, os.W_OK | os.X_OK):
-            raise TrainerError(f"--run-dir {run_dir}: the folder {nearest} is not writable")
-        ckpt = run_checkpoint_path(run_dir)
-        if ckpt.is_file():  # refused here, before Ray starts (whose workers would retry a refusal)
-            state = load_checkpoint(ckpt)
-            check_same_run(state, cfg, run_dir)
-            if not (no_ray or model.kind == "pca"):  # the plain loop checks the store itself
-                check_resumable(state, cfg, training_data(cfg), run_dir)
-        elif not (no_ray or model.kind == "pca"):
-            check_split(cfg)
-        import torch
-
-        if gpus and not address and torch.cuda.device_count() < gpus:
-            raise TrainerError(f"--gpus {gpus}: this machine has {torch.cuda.device_count()} CUDA device(s); "
-                               f"use --gpus 0 for CPU workers")
-        if device == "cuda" and not torch.cuda.is_available():
-            raise TrainerError("--device cuda: no CUDA device is available here")
+        where = RayAddress(address, connect_timeout)
+        placement = Placement(gpus=gpus, workers=workers, local=local, no_ray=no_ray, device=device, address=address,
+                              max_failures=max_failures)
+        cfg = prepare_training(store, run_dir, placement, config,
+                               dict(node_input=node_input, ema=ema, dropout=dropout, output_scale=output_scale,
+                                    layer=layer, settings=settings or ()),
+                               dict(scale_pct=scale_pct, lr_schedule=lr_schedule, split=split, sr=sr,
+                                    train_fraction=train_fraction, labelled_share=labelled_share, seed=seed,
+                                    split_seed=split_seed, label_seed=label_seed, rotate_deg=rotate_deg, epochs=epochs,
+                                    batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model))
     except _trainer_errors() as exc:
         fail(str(exc))
-    from trainer.loop import Dist, fit
+    train_here = placement.in_process(cfg)
+    summary = (_train_in_process if train_here else _train_on_ray)(cfg, run_dir.resolve(), placement, where)
+    _print_training(summary, config, cfg.model.kind, run_dir, as_json)
 
-    if no_ray or model.kind == "pca":
-        import torch
 
-        dev = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
-        stop_on_sigterm()
-        try:
-            summary = fit(cfg, run_dir, Dist(device=dev, log=lambda line: typer.echo(line, err=True)))
-        except _trainer_errors() as exc:
-            fail(str(exc))
-        except KeyboardInterrupt:
-            fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
-        summary["mode"] = "in-process" if model.kind != "pca" else "in-process (PCA fit, no Ray needed)"
-    else:
-        import ray
+def _train_in_process(cfg, run_dir: Path, placement, where) -> dict:
+    """trainer.launch.train_in_process, its refusals and Ctrl-C (or SIGTERM) as one line."""
+    from trainer.launch import train_in_process
 
-        from trainer.ray_train import LOCAL_RAY_TRAIN_ENV, NO_DASHBOARD_SETUP_HOOK, train_with_ray
+    stop_on_sigterm()
+    try:
+        return train_in_process(cfg, run_dir, placement, log=lambda line: typer.echo(line, err=True))
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
 
-        from orchestrator.sweep import CONNECT_TIMEOUT_S, RayConnectError, join_ray
 
-        try:
-            if address:
-                join_ray(address, connect_timeout or CONNECT_TIMEOUT_S)
-            elif not ray.is_initialized():
-                from orchestrator.sweep import WORKER_NICENESS, start_local_ray
+def _train_on_ray(cfg, run_dir: Path, placement, where) -> dict:
+    """Ray Train within a ray_session (a local Ray, or the cluster joined): refusals, Ray that will not
+    start and Ctrl-C exit 2 (130) in one line, a training that fails exits 1."""
+    from orchestrator.ray_session import RayConnectError, RayStartError, ray_session
+    from trainer.ray_train import check_ray_resources, local_ray_options, train_with_ray
 
-                start_local_ray(num_cpus=workers if local else None, include_dashboard=False,
-                                runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK,
-                                             "env_vars": dict(LOCAL_RAY_TRAIN_ENV)},  # Ray adds to it
-                                _system_config={"worker_niceness": WORKER_NICENESS})
-            if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
-                raise TrainerError(f"--gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
-            cpus = ray.cluster_resources().get("CPU", 0)
-            if not gpus and not address and cpus < workers:  # Ray Train would wait for them for ever
-                raise TrainerError(f"--workers {workers}: the local Ray has {cpus:g} CPUs; use --workers {int(cpus)} "
-                                   f"or fewer (one CPU each), or join a larger cluster with --address")
-        except RayConnectError as exc:
-            fail(str(exc))
-        except (ConnectionError, RuntimeError, TrainerError) as exc:
-            ray.shutdown()
-            fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0]}")
-        stop_on_sigterm()  # after ray.init, whose driver installs its own handler
-        try:
-            summary = train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=max_failures)
-        except _trainer_errors() as exc:
-            ray.shutdown()
-            fail(str(exc))
-        except KeyboardInterrupt:
-            ray.shutdown()
-            fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
-        except Exception as exc:  # Ray wraps worker errors (TrainingFailedError …)
-            ray.shutdown()
-            text = str(exc).strip()
-            line = next((ln for ln in reversed(text.splitlines()) if "TrainerError" in ln), None)
-            if line:
-                fail(line.split("TrainerError:", 1)[-1].strip())
-            fail(f"training failed: {text.splitlines()[0] if text else type(exc).__name__}", code=1)
-        ray.shutdown()
-        summary["mode"] = f"Ray Train, {summary['workers']} {'GPU' if gpus else 'CPU'} worker(s), {summary['backend']}"
+    gpus, workers = placement.gpus, placement.workers
+    try:
+        with ray_session(where, **local_ray_options(workers if placement.local else None)):
+            check_ray_resources(gpus, workers, where.address)
+            stop_on_sigterm()  # after ray.init, whose driver installs its own handler
+            summary = train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=placement.max_failures)
+    except (RayConnectError, RayStartError) as exc:
+        fail(str(exc))
+    except _trainer_errors() as exc:
+        fail(str(exc))
+    except KeyboardInterrupt:
+        fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
+    except Exception as exc:  # Ray's TrainingFailedError and the like: not bad input
+        text = str(exc).strip()
+        fail(f"training failed: {text.splitlines()[0] if text else type(exc).__name__}", code=1)
+    summary["mode"] = f"Ray Train, {summary['workers']} {'GPU' if gpus else 'CPU'} worker(s), {summary['backend']}"
+    return summary
+
+
+def _print_training(summary: dict, config: str, kind: str, run_dir: Path, as_json: bool) -> None:
+    """The run's summary: strict JSON, or one line (epochs, best validation MD, parameters, where)."""
     if as_json:
         typer.echo(json_line(summary))
         return
     best = summary.get("best_val_md_mm")
-    if model.kind == "pca":
+    if kind == "pca":
         typer.echo(f"{config}: fitted; "
                    + (f"validation MD {best:.3f} mm" if best is not None else "no validation cases")
-                   + f"; {summary.get('n_parameters') or 0:,} parameters → {shown_dir / 'checkpoint.pt'}")
+                   + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
         return
     typer.echo(f"{config}: {summary['epoch']} epochs ({summary['mode']}); "
                + (f"best validation MD {best:.3f} mm at epoch {summary['best_epoch']}" if best is not None
                   else f"no validation cases, kept epoch {summary['best_epoch']} (lowest training loss)")
                + (", stopped early" if summary.get("stopped_early") else "")
-               + f"; {summary.get('n_parameters') or 0:,} parameters → {shown_dir / 'checkpoint.pt'}")
+               + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
 
 
 @app.command()
@@ -1224,16 +1170,6 @@ def _print_learning_curve(result: dict, root: Path) -> None:
 # --- data generation ---
 
 
-def _check_connect_timeout(seconds: float | None, address: str | None) -> None:
-    """ValueError unless --connect-timeout is a finite number > 0 given with --address."""
-    if seconds is None:
-        return
-    if address is None:
-        raise ValueError("--connect-timeout applies to --address (joining a cluster); a local Ray starts here")
-    if not (math.isfinite(seconds) and seconds > 0):
-        raise ValueError(f"--connect-timeout must be a finite number of seconds > 0, got {seconds:g}")
-
-
 def _store_errors():
     from storage.store import StoreError
 
@@ -1266,94 +1202,74 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
     """Generate FE pairs (inverse + forward) over shapes × P × C × θendo × θepi into a Zarr store, on Ray.
     Rerunning on the same store resumes it."""
-    from orchestrator.grid import AXIS_FLAGS, parse_axis, resolve_spec
-    from orchestrator.sweep import check_request, remaining_cases
+    from orchestrator.ray_session import RayAddress
+    from orchestrator.sweep_request import SweepRequest, resolve_sweep
     from solver.mesh import MeshError
-    from storage.store import inspect_store, reading_store
 
     try:
-        if num_cpus is not None and num_cpus < 1:
-            raise ValueError(f"--num-cpus must be ≥ 1, got {num_cpus}")
-        if max_in_flight is not None and max_in_flight < 1:
-            raise ValueError(f"--max-in-flight must be ≥ 1, got {max_in_flight}")
-        if address is not None and local:
-            raise ValueError("--local starts its own two-core Ray; it does not take --address")
-        if address is not None and num_cpus is not None:
-            raise ValueError("--num-cpus sizes a local Ray; a cluster joined with --address has its own CPUs")
-        _check_connect_timeout(connect_timeout, address)
-        explicit = {"shapes": shapes, "fidelity": fidelity, "seed": seed, "nodes": nodes, "base": base, "fibres": fibres,
-                    "mesh_units": units.value if units is not None else None}
-        if meshes is not None:
-            from orchestrator.grid import find_meshes
-
-            explicit["meshes"] = find_meshes(meshes)
-            explicit["shapes"] = explicit["shapes"] or len(explicit["meshes"])
-            for path in explicit["meshes"]:  # every file must be a usable ED mesh before anything runs
-                _read_mesh(path, explicit["mesh_units"] or "mm")
-        for axis, text in zip(AXIS_FLAGS, (pressures, stiffness, endo, epi)):
-            explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
-        with reading_store(store, keep=(MeshError, ValueError, OSError)):  # argument and file errors keep their words
-            stored = inspect_store(store)
-            spec = resolve_spec(explicit, local=local, stored_attrs=stored)
-            if units is not None and not spec.meshes:
-                raise ValueError("--units gives the length unit of --meshes files; this sweep meshes the shape model")
-            stored = check_request(spec, store, for_writing=not dry_run)
-            left = remaining_cases(spec, store, retry_failed) if stored is not None and not dry_run else None
+        request = SweepRequest(store, shapes, pressures, stiffness, endo, epi, fidelity, base, fibres, seed, nodes, meshes,
+                               None if units is None else units.value, local, address, num_cpus, max_in_flight,
+                               retry_failed, dry_run)
+        where = RayAddress(address, connect_timeout)
+        with _warnings_as_lines():
+            sweep = resolve_sweep(request)
     except (*_store_errors(), MeshError) as exc:
         fail(str(exc))
+    _warn_high_pressures(sweep.high_pressures())
+    if dry_run:
+        _print_plan(sweep.plan(warm_start), as_json)
+    elif sweep.nothing_to_run(retry_damaged):
+        _print_nothing_to_run(sweep, as_json)
+    else:
+        report = _run_sweep(sweep, where, warm_start, retry_damaged, progress=not as_json)
+        _print_sweep_report(report, store, retry_damaged, as_json)
+
+
+def _warn_high_pressures(high: list[float]) -> None:
     from solver.parameters import HIGHEST_ED_PRESSURE_MMHG
 
-    high = [p for p in spec.pressure_mmhg if p > HIGHEST_ED_PRESSURE_MMHG]
-    if high:  # allowed (the solver decides), but likely a systolic value typed by mistake
+    if high:
         typer.echo(f"warning: --pressures {', '.join(f'{p:g}' for p in high)} mmHg: end-diastolic pressures are "
                    f"0–{HIGHEST_ED_PRESSURE_MMHG:g} mmHg; such cases may take long and fail", err=True)
-    if dry_run:
-        from orchestrator.plan import cluster_cores, make_plan
 
-        cores = num_cpus or (2 if local else cluster_cores())
-        plan = make_plan(spec, store, stored, cores=cores, warm_start=warm_start, retry_failed=retry_failed)
-        if as_json:
-            typer.echo(json_line(plan))
-            return
-        _print_plan(plan)
-        return
-    from orchestrator.sweep import CONNECT_TIMEOUT_S, RayConnectError, StoreFullError, StoreLostError, init_ray, \
-        run_sweep
 
-    if left is not None and not retry_damaged:  # damage is found by reading every case, in the sweep
-        if left["to_run"] == 0:
-            if as_json:  # the keys of a run's report, nothing submitted
-                from orchestrator.sweep import SweepReport
+def _run_sweep(sweep, where, warm_start: bool, retry_damaged: bool, progress: bool):
+    """orchestrator.sweep.run_sweep within a ray_session: Ray that will not start and store errors
+    exit 2, a full disk or a lost object store exits 1, Ctrl-C (or SIGTERM) 130, each in one line;
+    done cases are kept."""
+    from orchestrator.ray_session import RayConnectError, RayStartError, ray_session, sweep_ray_options
+    from orchestrator.sweep import StoreFullError, StoreLostError, run_sweep
 
-                typer.echo(json_line(SweepReport(total=spec.n_cases, done_before=left["done"],
-                                                 failed_before=left["failed"]).as_dict()))
-                return
-            typer.echo(f"{store}: nothing to run — {left['done']} done, {left['failed']} failed of {spec.n_cases}"
-                       + (" (--retry-failed reruns the failed ones)" if left["failed"] else ""))
-            return
+    req = sweep.request
     try:
-        init_ray(address=address, num_cpus=num_cpus or (2 if local else None), local=local,
-                 connect_timeout_s=connect_timeout or CONNECT_TIMEOUT_S)
-    except RayConnectError as exc:
+        with ray_session(where, **sweep_ray_options(req.num_cpus, req.local)):
+            stop_on_sigterm()  # after ray.init, whose driver installs its own handler
+            return run_sweep(sweep.spec, req.store, max_in_flight=req.max_in_flight, retry_failed=req.retry_failed,
+                             progress=progress, warm_start=warm_start, retry_damaged=retry_damaged)
+    except (RayConnectError, RayStartError) as exc:
         fail(str(exc))
-    except (ConnectionError, ValueError, RuntimeError) as exc:
-        fail(f"cannot start or join Ray ({address or 'local'}): {str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__}")
-    stop_on_sigterm()  # after ray.init, whose driver installs its own handler
-    import ray
-
-    try:
-        report = run_sweep(spec, store, max_in_flight=max_in_flight, retry_failed=retry_failed,
-                           progress=not as_json, warm_start=warm_start, retry_damaged=retry_damaged)
     except _store_errors() as exc:
-        ray.shutdown()
         fail(str(exc))
     except (StoreFullError, StoreLostError) as exc:  # not bad input: exit 1, like a solve that fails
-        ray.shutdown()
         fail(str(exc), code=1)
     except KeyboardInterrupt:
-        ray.shutdown()
         fail("interrupted; done cases are kept, rerun the same command to resume", code=130)
-    ray.shutdown()
+
+
+def _print_nothing_to_run(sweep, as_json: bool) -> None:
+    """A store that holds every case: the keys of a run's report with nothing submitted, or one line."""
+    left, total = sweep.left, sweep.spec.n_cases
+    if as_json:
+        from orchestrator.sweep import SweepReport
+
+        typer.echo(json_line(SweepReport(total=total, done_before=left["done"], failed_before=left["failed"]).as_dict()))
+        return
+    typer.echo(f"{sweep.request.store}: nothing to run — {left['done']} done, {left['failed']} failed of {total}"
+               + (" (--retry-failed reruns the failed ones)" if left["failed"] else ""))
+
+
+def _print_sweep_report(report, store: str, retry_damaged: bool, as_json: bool) -> None:
+    """The run's report: strict JSON, or the damaged cases recomputed and one summary line."""
     if as_json:
         typer.echo(json_line(report.as_dict()))
         return
@@ -1389,7 +1305,11 @@ def _run_state(writer: dict | None, object_store: bool) -> str:
     return ", running or interrupted" if object_store else ", interrupted"
 
 
-def _print_plan(plan: dict) -> None:
+def _print_plan(plan: dict, as_json: bool) -> None:
+    """A dry run's plan: strict JSON, or the grid, counts, calibration, estimates and the paper's sweep."""
+    if as_json:
+        typer.echo(json_line(plan))
+        return
     g = plan["grid"]
     axes = " × ".join(f"{len(g[a])} {n}" for a, n in (("pressure_mmhg", "P"), ("stiffness_pa", "C"),
                                                       ("helix_endo_deg", "θendo"), ("helix_epi_deg", "θepi")))

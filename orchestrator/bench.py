@@ -13,7 +13,8 @@ import numpy as np
 from storage.store import DONE, STAT_NAMES, PairReader
 
 from .grid import SweepSpec, pressure_chains
-from .sweep import init_ray, run_sweep
+from .ray_session import RayAddress, ray_session, sweep_ray_options
+from .sweep import run_sweep
 from .tasks import mesh_shape, run_case, run_chain
 
 
@@ -33,8 +34,7 @@ def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> dict:
 
     from .tasks import warm_up
 
-    init_ray(num_cpus=cpus, local=True)
-    try:
+    with ray_session(RayAddress(), **sweep_ray_options(cpus, local=True)):
         # warm the worker pool (process start + solver import are one-off costs, not per task)
         ray.get([ray.remote(num_cpus=1)(warm_up).remote(0.5) for _ in range(cpus)])
         noop = ray.remote(num_cpus=1)(_noop)
@@ -47,8 +47,6 @@ def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> dict:
         # one pair per task, cold: Ray's per-task overhead against one pair's solve (the chains'
         # warm start is measured serially in run_sweep_benchmark)
         report = run_sweep(spec, str(store), progress=False, warm_start=False, chain_length=1)
-    finally:
-        ray.shutdown()
     reader = PairReader(str(store))
     st = reader.stats(0)[reader.status(0) == DONE]
     col = {n: i for i, n in enumerate(STAT_NAMES)}

@@ -26,11 +26,7 @@ from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, objec
 from .grid import MAX_CHAIN, SweepSpec, pressure_chains
 
 TASK_MAX_RETRIES = 3  # worker process crash / node loss
-THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 FLUSH_INTERVAL_S = 2.0
-# Ray starts its workers at nice 15; the solves then got a few per cent of a core whenever anything
-# else ran (measured: inverse p50 0.42 s idle → 12.8 s beside two busy processes, 0.65 s at nice 0)
-WORKER_NICENESS = 0
 
 
 class SweepConflict(ValueError):
@@ -207,157 +203,7 @@ def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) 
     return counts
 
 
-# --------------------------------------------------------------------------- Ray
-
-
-# Ray (2.60 here) turns token authentication on for every cluster that ray.init() starts and says so
-# in a warning each time. That is the setting we want (a local cluster is not open to the network), so the
-# notice is dropped; Ray's warning that authentication is *disabled* (RAY_AUTH_MODE=disabled) still shows.
-RAY_AUTH_LOGGER = "ray._private.authentication.authentication_token_setup"
-RAY_AUTH_ENABLED_NOTICE = "Token authentication is enabled for this Ray cluster"
-
-
-def not_auth_enabled_notice(record) -> bool:
-    return not str(record.msg).startswith(RAY_AUTH_ENABLED_NOTICE)
-
-
-def start_local_ray(**kwargs):
-    """ray.init() of a new local cluster (token authentication on, as Ray defaults), without its notice."""
-    import logging
-
-    import ray
-
-    logger = logging.getLogger(RAY_AUTH_LOGGER)
-    if not_auth_enabled_notice not in logger.filters:
-        logger.addFilter(not_auth_enabled_notice)
-    return ray.init(**kwargs)
-
-
-CONNECT_TIMEOUT_S = 30.0  # joining an existing cluster (--address): then one line, not Ray's retries for minutes
-
-
-class RayConnectError(ConnectionError):
-    """No Ray cluster answered at the address given; the message names it, in one line."""
-
-
-def _gcs_host_port(address: str) -> tuple[str, int] | None:
-    """(host, port) of a Ray address (HOST:PORT, ray://HOST:PORT, or auto → the running cluster's),
-    or None when it cannot be told (auto with no cluster recorded: ray.init says so itself)."""
-    if address == "auto":
-        try:
-            from ray._private.services import canonicalize_bootstrap_address
-
-            address = canonicalize_bootstrap_address("auto") or ""
-        except Exception:
-            return None
-    address = address.split("://", 1)[-1]
-    host, sep, port = address.rpartition(":")
-    if not sep or not port.isdigit():
-        return None
-    return host.strip("[]"), int(port)
-
-
-def _auth_hint(text: str) -> str:
-    """A pointer to Ray's token when Ray's error or log speaks of authentication."""
-    words = text.lower()
-    if "token" in words or "authenticat" in words:
-        return ("; Ray says the authentication token is missing or wrong: set RAY_AUTH_MODE=token and the "
-                "head's token (`ray get-auth-token` there) in RAY_AUTH_TOKEN or ~/.ray/auth_token")
-    return ""
-
-
-def not_sigterm_notice(record) -> bool:
-    return "SIGTERM handler is not set" not in str(record.msg)
-
-
-def join_ray(address: str, timeout_s: float = CONNECT_TIMEOUT_S, **kwargs):
-    """ray.init(address=…) of an existing cluster, time-boxed: RayConnectError (one line naming the
-    address) when nothing listens there, or when Ray has not connected within timeout_s. The port is
-    probed first (a refused or unreachable port fails at once); ray.init then runs in a helper thread
-    so that a port that accepts but never answers as Ray does not hang the command."""
-    import threading
-
-    import ray
-
-    if not timeout_s > 0:
-        raise ValueError(f"--connect-timeout must be > 0 s, got {timeout_s}")
-    start = time.monotonic()
-    target = _gcs_host_port(address)
-    if target is not None:
-        try:
-            socket.create_connection(target, timeout=timeout_s).close()
-        except OSError as exc:
-            why = "timed out" if isinstance(exc, socket.timeout) else (exc.strerror or type(exc).__name__).lower()
-            where = "" if address == f"{target[0]}:{target[1]}" else f"{target[0]}:{target[1]}: "
-            raise RayConnectError(f"no Ray cluster answers at {address} ({where}{why}"
-                                  f"{f' after {timeout_s:g} s' if why == 'timed out' else ''}); start it with "
-                                  f"`ray start --head` or check HOST:PORT") from None
-    outcome: dict = {}
-
-    def connect():
-        try:
-            outcome["context"] = ray.init(address=address, **kwargs)
-        except BaseException as exc:  # handed to the caller's thread
-            outcome["error"] = exc
-
-    import logging
-    import tempfile
-
-    worker_log = logging.getLogger("ray._private.worker")  # says a helper thread sets no SIGTERM handler: the CLI sets its own
-    if not_sigterm_notice not in worker_log.filters:
-        worker_log.addFilter(not_sigterm_notice)
-    # Ray's C++ client logs each failed attempt on stderr (a line a second for ~20 s, the reason among
-    # them: an authentication token missing or wrong) before ray.init gives up. While it tries, stderr
-    # goes to a file: on success its lines are passed on, on failure read for the reason of one line.
-    captured = tempfile.TemporaryFile()
-    sys.stderr.flush()
-    saved_fd = os.dup(2)
-    os.dup2(captured.fileno(), 2)
-    thread = threading.Thread(target=connect, name="ray-connect", daemon=True)
-    try:
-        thread.start()
-        thread.join(max(timeout_s - (time.monotonic() - start), 0.1))
-    finally:
-        sys.stderr.flush()
-        os.dup2(saved_fd, 2)
-        os.close(saved_fd)
-    captured.seek(0)
-    said = captured.read().decode(errors="replace")
-    captured.close()
-    if thread.is_alive():
-        raise RayConnectError(f"Ray at {address} did not connect within {timeout_s:g} s (is it a Ray head's GCS port, "
-                              f"and this machine's Ray the same version?){_auth_hint(said)}; raise --connect-timeout "
-                              f"if it is slow")
-    if "error" in outcome:
-        exc = outcome["error"]
-        text = str(exc).strip()
-        first = text.splitlines()[0] if text else type(exc).__name__
-        raise RayConnectError(f"cannot join Ray at {address}: {first}{_auth_hint(text + said)}") from None
-    if said:
-        sys.stderr.write(said)
-    return outcome["context"]
-
-
-def init_ray(address: str | None = None, num_cpus: int | None = None, local: bool = False, quiet: bool = True,
-             connect_timeout_s: float = CONNECT_TIMEOUT_S):
-    """Start (or join, with `address`) Ray. A local Ray's dashboard listens on 127.0.0.1 only;
-    in --local mode there is no dashboard at all. Worker BLAS/MKL run single-threaded. A local Ray's
-    workers run at WORKER_NICENESS (a joined cluster keeps its own setting). Joining is time-boxed
-    (join_ray, connect_timeout_s)."""
-    import logging
-
-    import ray
-
-    for k, v in THREAD_ENV.items():
-        os.environ.setdefault(k, v)
-    kwargs = dict(runtime_env={"env_vars": dict(THREAD_ENV)}, logging_level=logging.WARNING if quiet else logging.INFO,
-                  log_to_driver=not quiet, configure_logging=True)
-    if address:
-        return join_ray(address, connect_timeout_s, **kwargs)
-    kwargs["_system_config"] = {"worker_niceness": WORKER_NICENESS}
-    if local:
-        return start_local_ray(num_cpus=num_cpus or 2, include_dashboard=False, **kwargs)
-    return start_local_ray(num_cpus=num_cpus, dashboard_host="127.0.0.1", **kwargs)
+# --------------------------------------------------------------------------- Ray tasks
 
 
 def _remotes():
@@ -427,7 +273,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
               progress: bool = True, on_event=None, console=None, warm_start: bool = True,
               chain_length: int = MAX_CHAIN, retry_damaged: bool = False) -> SweepReport:
     """Run (or resume) the sweep into the store at `location`. Ray must be initialised
-    (see init_ray). `on_event(dict)` is called after every recorded case (tests use it).
+    (orchestrator.ray_session). `on_event(dict)` is called after every recorded case (tests use it).
 
     Each task solves one pressure chain (`grid.pressure_chains`: the cases of a shape that differ only
     in pressure); with `warm_start` each inverse in it starts from the unloaded geometry extrapolated
@@ -440,7 +286,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     import ray
 
     if not ray.is_initialized():
-        raise RuntimeError("run_sweep needs Ray: call init_ray() first")
+        raise RuntimeError("run_sweep needs Ray: start it with orchestrator.ray_session first")
     t_start = time.perf_counter()
     try:
         store, lock = open_or_create(spec, location)

@@ -17,7 +17,8 @@ import zarr
 from typer.testing import CliRunner
 
 from orchestrator.grid import SweepSpec
-from orchestrator.sweep import init_ray, run_sweep
+from orchestrator.ray_session import init_ray
+from orchestrator.sweep import run_sweep
 from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, inspect_store, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,7 +52,7 @@ def test_local_ray_workers_are_not_niced(ray_cluster):
     share the driver's niceness (the README's advice for letting generation yield)."""
     import ray
 
-    from orchestrator.sweep import WORKER_NICENESS
+    from orchestrator.ray_session import WORKER_NICENESS
 
     assert ray.get(ray.remote(num_cpus=1)(lambda: os.nice(0)).remote()) == os.nice(0) + WORKER_NICENESS
     assert WORKER_NICENESS == 0

@@ -13,7 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli import app
-from orchestrator.sweep import RayConnectError, join_ray
+from orchestrator.ray_session import RayConnectError, join_ray
 
 ROOT = Path(__file__).resolve().parents[1]
 

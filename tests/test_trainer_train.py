@@ -521,7 +521,7 @@ def test_ray_notices_are_dropped_and_warnings_kept():
     from ray._private.authentication import authentication_token_setup as auth
     from ray.train.v2._internal.execution import storage
 
-    from orchestrator.sweep import RAY_AUTH_LOGGER, not_auth_enabled_notice
+    from orchestrator.ray_session import RAY_AUTH_LOGGER, not_auth_enabled_notice
     from trainer.ray_train import RAY_REPORT_LOGGERS, quieten_checkpoint_reports
 
     assert auth.logger.name == RAY_AUTH_LOGGER and storage.logger.name in RAY_REPORT_LOGGERS
@@ -544,3 +544,20 @@ def test_ray_notices_are_dropped_and_warnings_kept():
         assert got == ["upload failed"]
     finally:
         auth_logger.filters, report_logger.filters = before
+
+
+def test_a_workers_bad_input_reaches_the_driver_by_its_type():
+    """Ray Train wraps a worker's exception (WorkerGroupError → the rank's wrapper → the exception):
+    the TrainerError is found by type, the lowest rank's first; other failures give None."""
+    pytest.importorskip("ray")
+    from ray.train import WorkerGroupError
+    from ray.train.v2._internal.exceptions import UserExceptionWithTraceback
+
+    from trainer.ray_train import worker_trainer_error
+
+    failures = {1: UserExceptionWithTraceback(TrainerError("rank 1's refusal"), "Traceback …"),
+                0: UserExceptionWithTraceback(RuntimeError("rank 0 crashed"), "Traceback …")}
+    found = worker_trainer_error(WorkerGroupError("two workers failed", failures))
+    assert isinstance(found, TrainerError) and str(found) == "rank 1's refusal"
+    crashed = {0: UserExceptionWithTraceback(RuntimeError("rank 0 crashed"), "Traceback …")}
+    assert worker_trainer_error(WorkerGroupError("one worker failed", crashed)) is None

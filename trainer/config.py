@@ -396,6 +396,10 @@ class TrainConfig:
             raise TrainerError(f"--epochs must be ≥ 1, got {self.epochs}")
         if self.batch_size < 1:
             raise TrainerError(f"--batch-size must be ≥ 1, got {self.batch_size}")
+        if not 0 < self.lr < math.inf:
+            raise TrainerError(f"--lr must be a finite number > 0, got {self.lr}")
+        if self.patience < 1:
+            raise TrainerError(f"--patience must be ≥ 1, got {self.patience}")
         if not 0 <= self.labelled_share < 1:
             raise TrainerError(f"--labelled-share must be in [0, 1), got {self.labelled_share}")
         if self.seed < 0:

@@ -37,6 +37,47 @@ LOCAL_RAY_NOISY_LOGGERS = ("ray.train.v2._internal.execution.controller.placemen
                            "ray.train.v2._internal.execution.scaling_policy.autoscaling_coordinator_client")
 
 
+def local_ray_options(num_cpus: int | None = None) -> dict:
+    """ray.init keywords of a local Ray for Ray Train (`num_cpus` None: all cores): no dashboard, the
+    noisy loggers quietened in its workers, no preemption watcher."""
+    return dict(num_cpus=num_cpus, include_dashboard=False,
+                runtime_env={"worker_process_setup_hook": NO_DASHBOARD_SETUP_HOOK,
+                             "env_vars": dict(LOCAL_RAY_TRAIN_ENV)})  # Ray adds to it
+
+
+def check_ray_resources(gpus: int, workers: int, address: str | None) -> None:
+    """TrainerError unless the running Ray has the GPUs asked for, or, for CPU workers on a local
+    Ray, one CPU per worker (Ray Train would wait for them for ever)."""
+    import ray
+
+    where = f"cannot start or join Ray ({address or 'local'})"
+    if gpus and ray.cluster_resources().get("GPU", 0) < gpus:
+        raise TrainerError(f"{where}: --gpus {gpus}: the Ray cluster has {ray.cluster_resources().get('GPU', 0):g} GPUs")
+    cpus = ray.cluster_resources().get("CPU", 0)
+    if not gpus and not address and cpus < workers:
+        raise TrainerError(f"{where}: --workers {workers}: the local Ray has {cpus:g} CPUs; use --workers {int(cpus)} "
+                           f"or fewer (one CPU each), or join a larger cluster with --address")
+
+
+def worker_trainer_error(exc: BaseException) -> TrainerError | None:
+    """The TrainerError a Ray Train worker raised (bad input found on the worker), looked up by type
+    in Ray's failure: a WorkerGroupError's worker_failures (lowest rank first), each wrapping the
+    worker's own exception, and the exceptions they were raised from. None when there is none."""
+    seen, todo = set(), [exc]
+    while todo:
+        e = todo.pop(0)
+        if e is None or id(e) in seen:
+            continue
+        seen.add(id(e))
+        if isinstance(e, TrainerError):
+            return e
+        failures = getattr(e, "worker_failures", None) or {}
+        todo += [failures[rank] for rank in sorted(failures)]
+        todo += [getattr(e, name, None) for name in ("_base_exc", "cause", "controller_failure")]
+        todo += [e.__cause__, e.__context__]
+    return None
+
+
 def errors_only(record: logging.LogRecord) -> bool:
     return record.levelno >= logging.ERROR
 
@@ -198,9 +239,10 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     """Train on `gpus` GPU workers (NCCL), or `cpu_workers` CPU workers (gloo) when gpus == 0.
     Ray must be initialised by the caller. Re-running with the same run_dir resumes from the latest
     checkpoint (Ray's storage under run_dir/ray, or run_dir/checkpoint.pt, whichever is further).
-    Returns the loop's summary (from the final checkpoint)."""
+    Returns the loop's summary (from the final checkpoint). A TrainerError raised on a worker is
+    raised here as itself; other worker failures as Ray's TrainingFailedError."""
     import ray
-    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig
+    from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig, TrainingFailedError
     from ray.train.torch import TorchConfig, TorchTrainer
 
     if gpus < 0 or cpu_workers < 1:
@@ -236,7 +278,13 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
                              failure_config=FailureConfig(max_failures=max_failures),
                              checkpoint_config=CheckpointConfig(num_to_keep=2)),
     )
-    result = trainer.fit()
+    try:
+        result = trainer.fit()
+    except TrainingFailedError as exc:  # a worker's bad-input error reaches the caller as itself
+        cause = worker_trainer_error(exc)
+        if cause is None:
+            raise
+        raise cause from None
     if result.error is not None:  # pragma: no cover - surfaced by fit() raising in practice
         raise result.error
     metrics = result.metrics or {}  # Ray restores the latest checkpoint's metrics from an earlier call too
