@@ -656,19 +656,6 @@ def _trainer_errors():
     return (TrainerError, StoreError, ValueError, FileNotFoundError, NotADirectoryError)
 
 
-def _check_training_device(device: str) -> None:
-    """TrainerError unless device is cpu, or cuda with a CUDA device present."""
-    from trainer.config import TrainerError
-
-    if device not in ("cpu", "cuda"):
-        raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
-    if device == "cuda":
-        import torch
-
-        if not torch.cuda.is_available():
-            raise TrainerError("--device cuda: no CUDA device is available here")
-
-
 def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fidelity: str, base: str, tol_mm, units: str,
                          fibres: str, asked: dict, rotations: int = 1, max_updates: int | None = None):
     """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
@@ -849,17 +836,16 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
     from trainer.evaluate import evaluate_run
 
     try:
-        if device not in ("cpu", "cuda"):
-            raise ValueError(f"--device must be cpu or cuda, got {device!r}")
-        if device == "cuda":
-            import torch
-
-            if not torch.cuda.is_available():
-                raise ValueError("--device cuda: no CUDA device is available here")
         report = evaluate_run(run[0], store, split, device, out, plots, rotations=rotations, members=run[1:],
                               reference=reference)
     except _trainer_errors() as exc:
         fail(str(exc))
+    _print_evaluation(report, split, store, as_json)
+
+
+def _print_evaluation(report: dict, split: str, store: str, as_json: bool) -> None:
+    """An evaluation: one strict JSON object, or the metrics table (against the labels, and the
+    converged solution when there is a reference), the configuration, timings and files written."""
     if as_json:
         typer.echo(json_line({**report["summary"], "nn_md_mm": report["nn_md_mm"],
                                "ms_per_case_batched": report["ms_per_case_batched"],
@@ -924,36 +910,20 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                                                  "of a training step and of the largest inference batch."),
                     as_json: bool = typer.Option(False, "--json")):
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
-    from trainer.bench import bench_model
+    from trainer.bench import ModelBench
 
     try:
-        sizes = [int(b) for b in batches.replace(",", " ").split()]
-    except ValueError:
-        fail(f"--batches must be comma-separated integers, got {batches!r}")
-    try:
-        from solver.meshing import check_node_target
-
-        check_node_target(nodes)
-        if not sizes or min(sizes) < 1 or nodes < 50 or (train_batch is not None and train_batch < 1):
-            raise ValueError("--batches need sizes ≥ 1, --nodes ≥ 50, --train-batch ≥ 1")
-        if device not in ("cpu", "cuda"):
-            raise ValueError(f"--device must be cpu or cuda, got {device!r}")
-        if threads is not None:
-            import torch
-
-            if threads < 1:
-                raise ValueError("--threads must be ≥ 1")
-            torch.set_num_threads(threads)
-        if mesh is not None and not mesh.is_file():
-            raise ValueError(f"--mesh {mesh}: no such file")
-        if mesh is None and units is not Units.mm:
-            raise ValueError("--units gives the length unit of the --mesh file; without --mesh none is read")
         with _warnings_as_lines():
-            r = bench_model(device, nodes, config, sizes, train_batch, bf16, gat_kernel=gat_kernel,
-                            mesh_path=None if mesh is None else str(mesh), compile_model=compile_model, profile=profile,
-                            mesh_units=units.value)
+            r = ModelBench(device, nodes, config, batches, train_batch, bf16, threads, gat_kernel, mesh, units.value,
+                           compile_model, profile).run()
     except _trainer_errors() as exc:
         fail(str(exc))
+    _print_model_bench(r, as_json)
+
+
+def _print_model_bench(r: dict, as_json: bool) -> None:
+    """bench model's figures: strict JSON, or lines for the model, each inference batch, the prepared
+    single case, the linear FE response, training steps, batch building and any profiles."""
     if as_json:
         typer.echo(json_line(r))
         return
@@ -1003,40 +973,28 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
                        lr_schedule: str = LrScheduleOpt,
                        as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
-    from storage.store import inspect_store
-    from trainer.ablation import KEY_COMPARISONS, TABLE_METRICS, beats, run_ablation, run_ablation_seeds
-    from trainer.config import PAPER, TrainConfig, TrainerError
-    from trainer.splits import parse_split
+    from trainer.ablation import ablation_study
 
-    names = [c.strip() for c in configs.split(",") if c.strip()]
     try:
-        try:
-            seed_list = [int(v) for v in seeds.split(",") if v.strip()]
-        except ValueError:
-            raise TrainerError(f"--seeds must be comma-separated integers, got {seeds!r}") from None
-        parse_split(split)
-        _check_training_device(device)
-        if inspect_store(store) is None:
-            raise TrainerError(f"no heartctl store at {store}")
-        if root.exists() and not root.is_dir():
-            raise TrainerError(f"--root {root} is a file")
-        base = TrainConfig(store=store, model=PAPER, split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size,
-                           rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
-        log = lambda line: typer.echo(line, err=True)  # noqa: E731
-        if seed_list:
-            result = run_ablation_seeds(base, names, seed_list, root, device, log)
-        else:
-            result = run_ablation(base, names, root, device, log)
+        result = ablation_study(store, root, configs, seeds, device, lambda line: typer.echo(line, err=True),
+                                split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size,
+                                rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
     except _trainer_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json_line(result))
-        return
-    if seed_list:
+    elif "seeds" in result:
         _print_ablation_seeds(result, root)
-        return
+    else:
+        _print_ablation(result, store, root, split, sr, epochs, seed)
+
+
+def _print_ablation(result: dict, store: str, root: Path, split: str, sr: float, epochs: int, seed: int) -> None:
+    """The ablation table (the best value per metric in bold), then the comparisons that matter."""
     from rich.console import Console
     from rich.table import Table
+
+    from trainer.ablation import KEY_COMPARISONS, TABLE_METRICS, beats
 
     rows = result["rows"]
     table = Table(title=f"test split of {store} (split {split}, SR {sr:g}, ≤ {epochs} epochs, seed {seed}; "
@@ -1109,23 +1067,17 @@ def bench_learning_curve_cmd(store: str = typer.Option(..., "--store", help="Zar
                              as_json: bool = typer.Option(False, "--json", help="Print the result as JSON.")):
     """Train one configuration on growing fractions of the training shapes, evaluate each on the same
     test shapes, fit error ∝ pairs^(−b) and extrapolate the pairs a target would take."""
-    from storage.store import inspect_store
+    from trainer.ablation import check_study
     from trainer.config import TrainConfig, TrainerError, compose
     from trainer.learning_curve import parse_fractions, run_learning_curve
-    from trainer.splits import parse_split
 
     try:
         values = parse_fractions(fractions)
         model, training = compose(config)  # a preset brings its training options
         training.update({k: v for k, v in (("scale_pct", scale_pct), ("lr_schedule", lr_schedule)) if v is not None})
-        parse_split(split)
-        _check_training_device(device)
         if not (target_md > 0 and target_hd > 0 and 0 < target_dsc < 1):
             raise TrainerError("--target-md and --target-hd must be > 0 mm and --target-dsc in (0, 1)")
-        if inspect_store(store) is None:
-            raise TrainerError(f"no heartctl store at {store}")
-        if root.exists() and not root.is_dir():
-            raise TrainerError(f"--root {root} is a file")
+        check_study(store, root, split, device)
         base = TrainConfig(store=store, config_name=config, model=model, split=split, sr=sr, seed=seed, epochs=epochs,
                            batch_size=batch_size, rotate_deg=rotate_deg, **training)
         targets = {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc}

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from .config import TrainConfig, TrainerError, named_config
+from .config import PAPER, TrainConfig, TrainerError, check_device, named_config
 from .data import training_data
 from .evaluate import evaluate_run
 from .files import write_csv, write_json
@@ -22,6 +22,42 @@ TABLE_METRICS = (("md_mm", "MD mm", "min"), ("hd_mm", "HD mm", "min"), ("sd_mm",
 KEY_COMPARISONS = (("paper", ("A4", "pca")), ("paper", ("A1",)), ("R1", ("A1",)), ("R2", ("A1",)),
                    ("R3", ("A1",)), ("R4", ("A1",)), ("A1ema", ("A1",)), ("R5", ("A1ema",)), ("R5", ("A1",)),
                    ("R5", ("R4",)))
+
+
+def check_study(store: str, root: Path, split: str, device: str) -> None:
+    """The checks a study of several runs (ablation, learning curve) makes before it trains: the
+    split parses, the device exists, the store is a heartctl store, and `root` is no file."""
+    from storage.store import inspect_store
+
+    from .splits import parse_split
+
+    parse_split(split)
+    check_device(device)
+    if inspect_store(store) is None:
+        raise TrainerError(f"no heartctl store at {store}")
+    if root.exists() and not root.is_dir():
+        raise TrainerError(f"--root {root} is a file")
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'0,1,2' → [0, 1, 2]; '' → [] (one run at the base seed)."""
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise TrainerError(f"--seeds must be comma-separated integers, got {text!r}") from None
+
+
+def ablation_study(store: str, root: Path, configs: str, seeds: str, device: str, log=print, **options) -> dict:
+    """`heartctl bench ablation`: the comma-separated `configs` trained on one split (TrainConfig's
+    `options`), once (run_ablation) or once per seed of the comma-separated `seeds` (run_ablation_seeds,
+    whose result has "seeds")."""
+    names = [c.strip() for c in configs.split(",") if c.strip()]
+    seed_list = parse_seeds(seeds)
+    check_study(store, root, options.get("split", "shape"), device)
+    base = TrainConfig(store=store, model=PAPER, **options)
+    if seed_list:
+        return run_ablation_seeds(base, names, seed_list, root, device, log)
+    return run_ablation(base, names, root, device, log)
 
 
 def run_name(config: str, sr: float) -> str:

@@ -6,7 +6,8 @@ for comparison)."""
 from __future__ import annotations
 
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -74,6 +75,58 @@ def _profile(fn, device, calls: int = 3, rows: int = 25) -> str:
         _sync(device)
     key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
     return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=60)
+
+
+@dataclass(frozen=True)
+class ModelBench:
+    """What `heartctl bench model` times: `config`'s network on `device` (cpu | cuda), at the
+    comma-separated inference `batches` and a `train_batch` (None: 32 on a CPU, 128 on a GPU), on a
+    gmsh mesh of about `nodes` nodes or the `mesh` file (in `mesh_units`); `threads` torch CPU threads
+    (None: torch's), `bf16`, `gat_kernel` (sparse | pyg), `compile_model`, and `profile` tables."""
+
+    device: str = "cpu"
+    nodes: int = 650
+    config: str = "paper"
+    batches: str = "1,32,128"
+    train_batch: int | None = None
+    bf16: bool = False
+    threads: int | None = None
+    gat_kernel: str = "sparse"
+    mesh: Path | None = None
+    mesh_units: str = "mm"
+    compile_model: bool = False
+    profile: bool = False
+
+    def __post_init__(self):
+        from solver.meshing import check_node_target
+
+        sizes = self.batch_sizes
+        check_node_target(self.nodes)
+        if not sizes or min(sizes) < 1 or self.nodes < 50 or (self.train_batch is not None and self.train_batch < 1):
+            raise ValueError("--batches need sizes ≥ 1, --nodes ≥ 50, --train-batch ≥ 1")
+        if self.device not in ("cpu", "cuda"):
+            raise ValueError(f"--device must be cpu or cuda, got {self.device!r}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError("--threads must be ≥ 1")
+        if self.mesh is not None and not Path(self.mesh).is_file():
+            raise ValueError(f"--mesh {self.mesh}: no such file")
+        if self.mesh is None and self.mesh_units != "mm":
+            raise ValueError("--units gives the length unit of the --mesh file; without --mesh none is read")
+
+    @property
+    def batch_sizes(self) -> list[int]:
+        try:
+            return [int(b) for b in self.batches.replace(",", " ").split()]
+        except ValueError:
+            raise ValueError(f"--batches must be comma-separated integers, got {self.batches!r}") from None
+
+    def run(self) -> dict:
+        """bench_model with these settings (torch's CPU threads set first)."""
+        if self.threads is not None:
+            torch.set_num_threads(self.threads)
+        return bench_model(self.device, self.nodes, self.config, self.batch_sizes, self.train_batch, self.bf16,
+                           gat_kernel=self.gat_kernel, mesh_path=None if self.mesh is None else str(self.mesh),
+                           compile_model=self.compile_model, profile=self.profile, mesh_units=self.mesh_units)
 
 
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),

@@ -14,6 +14,17 @@ class TrainingDiverged(TrainerError):
     """The training loss (or validation loss) turned non-finite: every rank stops at the same epoch."""
 
 
+def check_device(device: str) -> None:
+    """TrainerError unless `device` is cpu, or cuda with a CUDA device present (torch loads only then)."""
+    if device not in ("cpu", "cuda"):
+        raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+    if device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise TrainerError("--device cuda: no CUDA device is available here")
+
+
 # the values of ModelConfig's choice fields
 MODEL_CHOICES = {"conv": ("gat", "gatv2", "gcn", "sage"), "pooling": ("mean", "max", "none"),
                  "tokens": ("single", "regional"), "fusion": ("attention", "concat", "broadcast"),

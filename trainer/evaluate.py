@@ -11,7 +11,7 @@ import numpy as np
 from storage.store import PARAM_NAMES
 
 from .checkpoint import load_run
-from .config import TrainerError, describe_run
+from .config import TrainerError, check_device, describe_run
 from .data import MeshFeatures, check_fingerprint, read_store, store_fingerprint
 from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
@@ -52,7 +52,8 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     whose networks are averaged with run_dir's (Ensemble). They must have been trained on the same
     store with the same split, so that the split's cases are unseen by every member. `reference`: a
     store of the same ED meshes at converged fidelity; the cases it has are also scored against it,
-    the network's answer and the store's own labels (trainer.reference)."""
+    the network's answer and the store's own labels (trainer.reference). `device`: cpu | cuda."""
+    check_device(device)
     run_dir = Path(run_dir)
     state = load_run(run_dir)
     keys = _keys_for(state, split)
