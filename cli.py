@@ -1306,24 +1306,27 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
            verify: bool = typer.Option(False, "--verify", help="Also read every done case and list those whose stored chunks are damaged (exit 1 if any)."),
            as_json: bool = typer.Option(False, "--json", help='One JSON object: {"done": N, "failed": N, "pending": N, …}.')):
     """Progress of a store: counts by status, failure reasons, throughput, per-phase times, ETA."""
-    from storage.store import PairReader, StoreError, inspect_store, is_url, reading_store, summarize
+    from storage.status import store_status
 
     try:
-        with reading_store(store):
-            if inspect_store(store) is None:
-                raise StoreError(f"no heartctl store at {store}")
-            s = summarize(store)
-            if verify:
-                s["damaged"] = [{"shape": a, "case": b, "reason": r} for a, b, r in PairReader(store).damaged()]
+        s = store_status(store, verify)
     except _store_errors() as exc:
         fail(str(exc))
     if as_json:
         typer.echo(json_line(s))
-        if s.get("damaged"):
-            raise typer.Exit(1)
-        return
+    else:
+        _print_status(s, store, verify)
+    if s.get("damaged"):
+        raise typer.Exit(1)
+
+
+def _print_status(s: dict, store: str, verify: bool) -> None:
+    """A store's status as lines and tables: counts, throughput and ETA, per-phase times, failure
+    reasons, shapes that did not mesh, hosts, and with --verify the damaged cases."""
     from rich.console import Console
     from rich.table import Table
+
+    from storage.store import is_url
 
     con = Console(width=160)
     made = ", ".join(part for part in (s["fidelity"], None if s["seed"] is None else f"seed {s['seed']}",
@@ -1370,7 +1373,6 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
             typer.echo(f"damaged: shape {d['shape']} case {d['case']}: {d['reason']}")
         typer.echo(f"{len(s['damaged'])} of {s['done']} done cases are damaged; "
                    f"`heartctl generate --store {store} --retry-damaged` recomputes them")
-        raise typer.Exit(1)
 
 
 @app.command()
