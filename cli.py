@@ -3,7 +3,6 @@ bad input → one line on stderr and exit code 2; a solve that fails → its rea
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 from enum import Enum
@@ -63,10 +62,9 @@ def fail(message: str, code: int = 2) -> None:
 
 
 def _check_fibres(rule: str) -> None:
-    from solver.fibres import FIBRE_RULES
+    from solver.fibres import check_fibre_rule
 
-    if rule not in FIBRE_RULES:
-        raise ValueError(f"--fibres must be {' or '.join(FIBRE_RULES)}, got {rule!r}")
+    check_fibre_rule(rule)
 
 
 def _input_errors():
@@ -286,18 +284,11 @@ def _given(ctx: typer.Context, name: str) -> bool:
     return source is not None and source.name not in ("DEFAULT", "DEFAULT_MAP")
 
 
-def _auto_method(run: list[Path], tolerance_mm: float, n_nodes: int, fidelity: FidelityName):
-    """`--method auto`: the trade table's cheapest method that met the tolerance, as (method, preset,
-    update budget, runs); prints the choice and the error it expects."""
-    from trainer.trade import choose_method, load_trade
-
-    choice = choose_method(load_trade(run[0]), tolerance_mm, n_nodes, with_ensemble=len(run) > 1)
+def _print_auto_choice(choice: dict, tolerance_mm: float) -> None:
+    """`--method auto`: the trade table's choice and the error it expects."""
     typer.echo(f"auto: {choice['label']} (p95 {choice['p95_mm']:.3f} mm, max {choice['max_mm']:.3f} mm against the "
                f"converged solution on the trade table's {choice['nodes']}-node held-out meshes, "
                f"{choice['time_mean_s']:.2f} s per case there; asked ≤ {tolerance_mm:g} mm)")
-    preset = FidelityName(choice["preset"]) if choice["preset"] else fidelity
-    runs = run if choice["ensemble"] or choice["method"] != "gnn" else run[:1]
-    return UnloadMethod(choice["method"]), preset, choice["updates"], runs
 
 
 def _print_check(lv, unloaded, params, fidelity: str, base: str, fibres: str) -> None:
@@ -332,54 +323,25 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
            check: bool = typer.Option(False, "--check", help="--method gnn|hybrid|auto: inflate the answer again (one "
                                       "forward solve at --fidelity) and print how far it lands from the ED mesh.")):
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
-    from solver.forward import SolveError
-    from solver.lv import inverse_solve
+    from trainer.unload import UnloadRequest
 
-    max_updates = None
     try:
         params = _params(pressure, stiffness, endo, epi)
         _check_output(out, mesh_path)
-        if tol_mm is not None and not (math.isfinite(tol_mm) and tol_mm > 0):
-            raise ValueError(f"--tol-mm must be a finite number > 0, got {tol_mm}")
-        _check_fibres(fibres)
-        if rotations < 1 or (rotations > 1 and method is UnloadMethod.fe):
-            raise ValueError(f"--rotations must be ≥ 1 and applies to --method gnn|hybrid, got {rotations}")
-        run = run or None
-        if (tolerance_mm is None) != (method is not UnloadMethod.auto):
-            raise ValueError("--method auto needs --tolerance-mm X" if tolerance_mm is None
-                             else "--tolerance-mm applies to --method auto (use --tol-mm for the inverse FE's mismatch)")
-        if check and method is UnloadMethod.fe:
-            raise ValueError("--check applies to --method gnn|hybrid|auto: --method fe prints its own mismatch")
-        if method is UnloadMethod.gnn and not check:
-            solver_only = [f"--{n.replace('_', '-')}" for n in ("fidelity", "tol_mm") if _given(ctx, n)]
-            if solver_only:
-                raise ValueError(f"{' and '.join(solver_only)} appl{'y' if len(solver_only) > 1 else 'ies'} to "
-                                 f"--method fe|hybrid: --method gnn solves nothing")
-        if (run is None) != (method is UnloadMethod.fe):
-            raise ValueError(f"--method {method.value} needs --run DIR" if run is None else "--run applies to --method gnn|hybrid")
+        given = frozenset(n for n in ("fidelity", "tol_mm", "base", "fibres") if _given(ctx, n))
+        request = UnloadRequest(method.value, fidelity.value, base.value, fibres, tol_mm, tuple(run or ()), rotations,
+                                tolerance_mm, check, given)
         lv = _read_mesh(mesh_path, units.value)
-        if method is UnloadMethod.auto:
-            method, fidelity, max_updates, run = _auto_method(run, tolerance_mm, lv.n_nodes, fidelity)
+        plan, choice = request.plan(lv.n_nodes)
     except _input_errors() as exc:
         fail(str(exc))
-    if method is not UnloadMethod.fe:
-        asked = {name: value for name, value in (("base", base.value), ("fibres", fibres)) if _given(ctx, name)}
-        unloaded = _unload_with_network(lv, params, method.value, run, out, fidelity.value, base.value, tol_mm,
-                                        units.value, fibres, asked, rotations, max_updates)
-        if check:
-            _print_check(lv, unloaded, params, fidelity.value, base.value, fibres)
-        return
-    try:
-        result = inverse_solve(lv, params, fidelity.value, base.value, tol_mm=tol_mm, fibres=fibres)
-    except SolveError as exc:
-        fail(f"inverse solve did not converge: {exc}", code=1)
-    shift = lv.nodes - result.unloaded_nodes
-    _write_mesh(out, lv, result.unloaded_nodes, point_data={"displacement": shift},
-               units=units.value, length_fields=("displacement",))
-    d = np.linalg.norm(shift, axis=1)
-    typer.echo(f"unloaded at {params.label()} ({fidelity.value}, {base.value} base): {result.updates} updates, "
-               f"{result.stats.newton_iterations} Newton iterations, {result.stats.wall_s:.2f} s, "
-               f"mismatch {result.mismatch_mm:.2e} mm; ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
+    if choice is not None:
+        _print_auto_choice(choice, tolerance_mm)
+    result = _unload_mesh(lv, params, plan)
+    _write_unloaded(out, lv, result, units.value)
+    _print_unloaded(result, lv, params, plan, out)
+    if check and plan.method != "fe":
+        _print_check(lv, result["unloaded_nodes"], params, plan.fidelity, plan.base, plan.fibres)
 
 
 @app.command()
@@ -656,30 +618,45 @@ def _trainer_errors():
     return (TrainerError, StoreError, ValueError, FileNotFoundError, NotADirectoryError)
 
 
-def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fidelity: str, base: str, tol_mm, units: str,
-                         fibres: str, asked: dict, rotations: int = 1, max_updates: int | None = None):
-    """`heartctl unload --method gnn|hybrid`: the network (or its guess refined by inverse FE)."""
+def _unload_mesh(lv, params, plan) -> dict:
+    """trainer.unload.unload_mesh: an inverse FE that fails exits 1, a network's refusal 2; the
+    network's warnings as lines on stderr."""
     from solver.forward import SolveError
-    from trainer.predict import unload_with_network
+    from trainer.unload import unload_mesh
 
     try:
-        result = unload_with_network(lv, params, run, method, fidelity, base, tol_mm, fibres=fibres, asked=asked,
-                                     rotations=rotations, max_updates=max_updates)
+        result = unload_mesh(lv, params, plan)
     except SolveError as exc:
         fail(f"inverse solve did not converge: {exc}", code=1)
     except _trainer_errors() as exc:
         fail(str(exc))
-    for w in result["warnings"]:
+    for w in result.get("warnings", ()):
         typer.echo(f"heartctl: warning: {w}", err=True)
-    unloaded = result["unloaded_nodes"]
-    shift = lv.nodes - unloaded
+    return result
+
+
+def _write_unloaded(out: Path, lv, result: dict, units: str) -> None:
+    """The unloaded mesh with point data `displacement` (ED − unloaded) and, for an ensemble of
+    networks, `ensemble_spread` (a hybrid's answer is the FE's: no network spread to show)."""
+    shift = lv.nodes - result["unloaded_nodes"]
     point_data, lengths = {"displacement": shift}, ["displacement"]
-    if result["members"] > 1 and method == "gnn":  # hybrid: the FE answer, no network spread to show
+    if result["method"] == "gnn" and result["members"] > 1:
         point_data["ensemble_spread"] = result["spread_mm"]
         lengths.append("ensemble_spread")
-    _write_mesh(out, lv, unloaded, point_data=point_data, units=units, length_fields=tuple(lengths))
-    d = np.linalg.norm(shift, axis=1)
-    if method == "gnn":
+    _write_mesh(out, lv, result["unloaded_nodes"], point_data=point_data, units=units, length_fields=tuple(lengths))
+
+
+def _print_unloaded(result: dict, lv, params, plan, out: Path) -> None:
+    """One line: how the mesh was unloaded (FE's updates and mismatch, the network's time, or the
+    hybrid's both) and the ED − unloaded displacement."""
+    d = np.linalg.norm(lv.nodes - result["unloaded_nodes"], axis=1)
+    moved = f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}"
+    inv = result.get("inverse")
+    if result["method"] == "fe":
+        typer.echo(f"unloaded at {params.label()} ({plan.fidelity}, {plan.base} base): {inv.updates} updates, "
+                   f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, "
+                   f"mismatch {inv.mismatch_mm:.2e} mm; {moved}")
+    elif result["method"] == "gnn":
         spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
                   f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
                   if result["members"] > 1 else "")
@@ -687,19 +664,16 @@ def _unload_with_network(lv, params, method: str, run: list[Path], out: Path, fi
                    f"(first call with graph building{' and the linear FE response' if result['with_response'] else ''} "
                    f"{result['first_call_ms']:.0f} ms); "
                    f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
-        return unloaded
-    inv = result["inverse"]
-    dropped = ""
-    if result["fallback"]:
-        lost = result.get("guess_attempt_s")
-        dropped = ", guess unusable" + (f" after {lost:.1f} s of inverse FE from it" if lost is not None else "")
-    budget = f", at most {max_updates} updates" if max_updates is not None else ""
-    typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms{dropped}"
-               f", then {fidelity} inverse FE{budget}): {inv.updates} updates, "
-               f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
-               f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; "
-               f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}")
-    return unloaded
+    else:
+        dropped = ""
+        if result["fallback"]:
+            lost = result.get("guess_attempt_s")
+            dropped = ", guess unusable" + (f" after {lost:.1f} s of inverse FE from it" if lost is not None else "")
+        budget = f", at most {plan.max_updates} updates" if plan.max_updates is not None else ""
+        typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms{dropped}"
+                   f", then {plan.fidelity} inverse FE{budget}): {inv.updates} updates, "
+                   f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
+                   f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; {moved}")
 
 
 @app.command()

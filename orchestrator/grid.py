@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from solver.fidelity import get_fidelity
-from solver.fibres import FIBRE_RULES
+from solver.fibres import check_fibre_rule
 from solver.lv import BASE_CONDITIONS
 from solver.meshing import MESH_LEVELS, check_node_target
 from solver.parameters import PAPER_GRID, CaseParameters
@@ -68,8 +68,7 @@ class SweepSpec:
         check_node_target(self.nodes)
         if self.base not in BASE_CONDITIONS:
             raise ValueError(f"--base must be one of {', '.join(BASE_CONDITIONS)}, got {self.base!r}")
-        if self.fibres not in FIBRE_RULES:
-            raise ValueError(f"--fibres must be {' or '.join(FIBRE_RULES)}, got {self.fibres!r}")
+        check_fibre_rule(self.fibres)
         if self.meshes and self.shapes != len(self.meshes):
             raise ValueError(f"--shapes {self.shapes} does not match the {len(self.meshes)} mesh files given")
         return self

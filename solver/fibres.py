@@ -169,6 +169,13 @@ NORMAL_BLEND_CUTOFF = 20.0  # the blend's weights are zero beyond this many δ
 FULL_WEIGHT_AREA = 1e-3  # a clipped piece counts fully in the blend from this fraction of the mean triangle area
 
 
+def check_fibre_rule(rule: str) -> None:
+    """ValueError (one line, naming --fibres) unless `rule` is one of FIBRE_RULES."""
+    if rule not in FIBRE_RULES:
+        raise ValueError(f"--fibres must be {' or '.join(FIBRE_RULES)}, got {rule!r}")
+
+
+
 def closest_points_on_triangles(points: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """Closest point of triangle (a, b, c) to each point; all arrays [k, 3] (row-wise pairs).
     Region tests of Ericson, Real-Time Collision Detection §5.1.5, vectorised."""
