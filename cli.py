@@ -572,22 +572,22 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
     from storage.store import StoreError
 
     try:
-        if not (stiffness_factor > 0):
-            raise ValueError(f"--stiffness-factor must be > 0, got {stiffness_factor}")
-        _check_fibres(fibres)
-        if not 0 <= quad_degree <= 6:
-            raise ValueError(f"--quad-degree must be 1–6 (0: the preset's), got {quad_degree}")
-        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor, fibres, quad_degree or None,
+        result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor, fibres, quad_degree,
                                direction.value)
     except (StoreError, ValueError) as exc:
         fail(str(exc))
+    _print_l2u_check(result, direction, as_json)
+
+
+def _print_l2u_check(result: dict, direction: Direction, as_json: bool) -> None:
+    """bench l2u's comparison: JSON without the rows, or a line per pair, per parameter value, overall."""
     if as_json:
         typer.echo(json_line({k: v for k, v in result.items() if k != "rows"}))
         return
     o = result["overall"]
     what = "ED meshes unloaded" if direction is Direction.inverse else "unloaded meshes inflated"
-    typer.echo(f"{result['solved']}/{result['cases']} of their {what} ({fidelity.value}, base {base.value}, "
-               f"C × {stiffness_factor:g}, {fibres} fibres, quadrature degree {result['quad_degree']})")
+    typer.echo(f"{result['solved']}/{result['cases']} of their {what} ({result['fidelity']}, base {result['base']}, "
+               f"C × {result['stiffness_factor']:g}, {result['fibres']} fibres, quadrature degree {result['quad_degree']})")
     for r in result["rows"]:
         if r["ok"]:
             typer.echo(f"  shape {r['shape']} case {r['case']}: P={r['pressure_mmhg']:g} C={r['stiffness_pa']:g} "
@@ -1373,20 +1373,12 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
                 cpus: str = typer.Option("1,2", "--cpus", help="CPU counts to compare, comma-separated."),
                 as_json: bool = typer.Option(False, "--json")):
     """Sweep throughput on 1 and 2 (…) CPUs, parallel efficiency, Ray overhead per task vs a fast pair's solve."""
+    from orchestrator.bench import parse_cpu_counts, run_sweep_benchmark
+
     try:
-        counts = [int(c) for c in cpus.replace(",", " ").split()]
-        if not counts or min(counts) < 1:
-            raise ValueError("--cpus needs counts ≥ 1")
-        if cases < 1 or nodes < 50:
-            raise ValueError("--cases must be ≥ 1 and --nodes ≥ 50")
-        from solver.meshing import check_node_target
-
-        check_node_target(nodes)
+        result = run_sweep_benchmark(cases, nodes, parse_cpu_counts(cpus))
     except ValueError as exc:
-        fail(str(exc) if "--" in str(exc) else f"--cpus must be comma-separated integers, got {cpus!r}")
-    from orchestrator.bench import run_sweep_benchmark
-
-    result = run_sweep_benchmark(cases, nodes, counts)
+        fail(str(exc))
     if as_json:
         typer.echo(json_line(result))
         return

@@ -67,7 +67,25 @@ def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> dict:
     }
 
 
+def parse_cpu_counts(text: str) -> list[int]:
+    """'1,2' (commas and/or spaces) → [1, 2]; ValueError (one line, naming --cpus) unless they are integers ≥ 1."""
+    try:
+        counts = [int(c) for c in text.replace(",", " ").split()]
+    except ValueError:
+        raise ValueError(f"--cpus must be comma-separated integers, got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise ValueError("--cpus needs counts ≥ 1")
+    return counts
+
+
 def run_sweep_benchmark(cases: int = 8, nodes: int = 200, cpus=(1, 2)) -> dict:
+    """The benchmark's figures for `cases` fast pairs of one shape meshed to about `nodes` nodes, on
+    each CPU count of `cpus`; ValueError (one line) for a count of cases or nodes out of range."""
+    from solver.meshing import check_node_target
+
+    if cases < 1 or nodes < 50:
+        raise ValueError("--cases must be ≥ 1 and --nodes ≥ 50")
+    check_node_target(nodes)
     spec = bench_spec(cases, nodes).validate()
     # in-process reference: the same cases, serially, no Ray
     m = mesh_shape(0, spec.seed, spec.nodes)["mesh"]

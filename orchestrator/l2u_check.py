@@ -75,9 +75,18 @@ def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
 def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None,
                   stiffness_factor: float = 1.0, fibres: str = "laplace", quad_degree: int | None = None,
                   direction: str = "forward") -> dict:
-    """`quad_degree` overrides the preset's cell quadrature (heartFEM integrates, and places its
-    fibres, at degree 4). `limit` N ≥ 1: the first N done pairs (None: all). StoreError for a store
-    that import-l2u did not write: its pairs are ours, and "their" geometry would be our own labels."""
+    """`quad_degree` 1–6 overrides the preset's cell quadrature (heartFEM integrates, and places its
+    fibres, at degree 4; 0 or None: the preset's). `limit` N ≥ 1: the first N done pairs (None: all).
+    `stiffness_factor` > 0 multiplies their C. ValueError (one line) for a bad setting; StoreError for a
+    store that import-l2u did not write: its pairs are ours, and "their" geometry would be our own labels."""
+    from solver.fibres import check_fibre_rule
+
+    if not (stiffness_factor > 0):
+        raise ValueError(f"--stiffness-factor must be > 0, got {stiffness_factor}")
+    check_fibre_rule(fibres)
+    if quad_degree is not None and not 0 <= quad_degree <= 6:
+        raise ValueError(f"--quad-degree must be 1–6 (0: the preset's), got {quad_degree}")
+    quad_degree = quad_degree or None
     if limit is not None and limit < 1:
         raise ValueError(f"--limit must be ≥ 1 (leave it out for every pair), got {limit}")
     reader = PairReader(location)
