@@ -105,14 +105,33 @@ def find_pairs(root: str | os.PathLike, report: ImportReport) -> list[SourcePair
     return pairs
 
 
+class UnusableFile(Exception):
+    """A source file that import-l2u skips; `reason` says why in a few words, for its report."""
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
 def _read(path: Path):
-    """(points mm, tets) of one source file; MeshError when it is unreadable, not all linear tets, or
-    has a point in no tet."""
+    """(points mm, tets) of one source file; UnusableFile when it is unreadable, not all linear tets,
+    or has a point in no tet."""
+    from solver.mesh import MeshError
+
     from .meshfiles import check_points_used, linear_tets, read_meshio
 
-    m = read_meshio(path)
-    tets = linear_tets(m, path)
-    check_points_used(tets, len(m.points), path.name)
+    try:
+        m = read_meshio(path)
+    except MeshError:
+        raise UnusableFile("unreadable") from None
+    try:
+        tets = linear_tets(m, path)
+    except MeshError:
+        raise UnusableFile("not linear tetrahedra only") from None
+    try:
+        check_points_used(tets, len(m.points), path.name)
+    except MeshError:
+        raise UnusableFile("points in no tetrahedron") from None
     return np.asarray(m.points, dtype=float) * CM_TO_MM, tets
 
 
@@ -122,7 +141,7 @@ def import_l2u(root, location, progress=None) -> ImportReport:
     it are skipped with the reason). The store is built beside its final place and renamed into it
     at the end (local paths), so an interrupted import leaves nothing behind. Raises StoreError if
     no pair could be imported; a shape whose sizes are no human LV's in cm draws a MeshUnitsWarning."""
-    from solver.mesh import MeshError, MeshUnitsWarning
+    from solver.mesh import MeshUnitsWarning
     from solver.shape_model import MODES
 
     from .meshfiles import units_warning
@@ -144,10 +163,8 @@ def import_l2u(root, location, progress=None) -> ImportReport:
                 ed, tets = _read(reading)
                 reading = pair.unloaded_path
                 un, tets_u = _read(reading)
-            except MeshError as exc:  # a corrupt file, cells other than linear tets, a point in no tet
-                text = str(exc)
-                reason = ("unreadable" if "cannot read" in text else
-                          "points in no tetrahedron" if "belong to no tetrahedron" in text else "not linear tetrahedra only")
+            except UnusableFile as exc:  # a corrupt file, cells other than linear tets, a point in no tet
+                reason = exc.reason
                 report.skip(reason if reading == pair.ed_path else f"{reason} (its partner {reading.name})",
                             pair.ed_path.name)
                 continue
