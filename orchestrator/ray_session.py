@@ -95,11 +95,13 @@ def _auth_hint(text: str) -> str:
 
 
 def start_local_ray(**kwargs):
-    """ray.init() of a new local cluster (token authentication on, as Ray defaults), without its notice."""
+    """ray.init() of a new local cluster (token authentication on, as Ray defaults), without its notice.
+    Always a new one (address "local"): never a cluster that another process started on this machine,
+    which Ray would otherwise join (and refuse, when given num_cpus)."""
     import ray
 
     _add_filter(RAY_AUTH_LOGGER, not_auth_enabled_notice)
-    return ray.init(**kwargs)
+    return ray.init(address="local", **kwargs)
 
 
 def _gcs_host_port(address: str) -> tuple[str, int] | None:

@@ -375,7 +375,7 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
     from trainer.ray_train import train_with_ray
 
     run = tmp_path / "ray_run"
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # a new Ray, not another process's
     try:
         s = train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=2, max_failures=0)
         assert s["epoch"] == 2 and s["workers"] == 2 and s["backend"] == "gloo"
