@@ -329,8 +329,9 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         params = _params(pressure, stiffness, endo, epi)
         _check_output(out, mesh_path)
         given = frozenset(n for n in ("fidelity", "tol_mm", "base", "fibres") if _given(ctx, n))
-        request = UnloadRequest(method.value, fidelity.value, base.value, fibres, tol_mm, tuple(run or ()), rotations,
-                                tolerance_mm, check, given)
+        request = UnloadRequest(method=method.value, fidelity=fidelity.value, base=base.value, fibres=fibres, tol_mm=tol_mm,
+                                runs=tuple(run or ()), rotations=rotations, tolerance_mm=tolerance_mm, check=check,
+                                given=given)
         lv = _read_mesh(mesh_path, units.value)
         plan, choice = request.plan(lv.n_nodes)
     except _input_errors() as exc:
@@ -731,12 +732,14 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                     batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model))
     except _trainer_errors() as exc:
         fail(str(exc))
-    train_here = placement.in_process(cfg)
-    summary = (_train_in_process if train_here else _train_on_ray)(cfg, run_dir.resolve(), placement, where)
+    if placement.in_process(cfg):
+        summary = _train_in_process(cfg, run_dir.resolve(), placement)
+    else:
+        summary = _train_on_ray(cfg, run_dir.resolve(), placement, where)
     _print_training(summary, config, cfg.model.kind, run_dir, as_json)
 
 
-def _train_in_process(cfg, run_dir: Path, placement, where) -> dict:
+def _train_in_process(cfg, run_dir: Path, placement) -> dict:
     """trainer.launch.train_in_process, its refusals and Ctrl-C (or SIGTERM) as one line."""
     from trainer.launch import train_in_process
 
@@ -888,8 +891,9 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
 
     try:
         with _warnings_as_lines():
-            r = ModelBench(device, nodes, config, batches, train_batch, bf16, threads, gat_kernel, mesh, units.value,
-                           compile_model, profile).run()
+            r = ModelBench(device=device, nodes=nodes, config=config, batches=batches, train_batch=train_batch, bf16=bf16,
+                           threads=threads, gat_kernel=gat_kernel, mesh=mesh, mesh_units=units.value,
+                           compile_model=compile_model, profile=profile).run()
     except _trainer_errors() as exc:
         fail(str(exc))
     _print_model_bench(r, as_json)
@@ -1133,9 +1137,10 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     from solver.mesh import MeshError
 
     try:
-        request = SweepRequest(store, shapes, pressures, stiffness, endo, epi, fidelity, base, fibres, seed, nodes, meshes,
-                               None if units is None else units.value, local, address, num_cpus, max_in_flight,
-                               retry_failed, dry_run)
+        request = SweepRequest(store=store, shapes=shapes, pressures=pressures, stiffness=stiffness, endo=endo, epi=epi,
+                               fidelity=fidelity, base=base, fibres=fibres, seed=seed, nodes=nodes, meshes=meshes,
+                               mesh_units=None if units is None else units.value, local=local, address=address,
+                               num_cpus=num_cpus, max_in_flight=max_in_flight, retry_failed=retry_failed, dry_run=dry_run)
         where = RayAddress(address, connect_timeout)
         with _warnings_as_lines():
             sweep = resolve_sweep(request)
