@@ -9,7 +9,7 @@ from pathlib import Path
 
 METHODS = ("fe", "gnn", "hybrid", "auto")
 SOLVER_OPTIONS = ("fidelity", "tol_mm")  # options of the inverse FE, which --method gnn does not run
-MODEL_CHOICES = ("base", "fibres")  # choices of the model that a network was trained with
+TRAINED_CHOICES = ("base", "fibres")  # model choices a network is trained with, checked against the user's
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class UnloadRequest:
     def plan(self, n_nodes: int) -> tuple[UnloadPlan, dict | None]:
         """What to run on a mesh of `n_nodes` nodes, and for --method auto the trade table's row that
         chose it (its method, preset, inverse-update budget; the runs an ensemble needs)."""
-        asked = {name: getattr(self, name) for name in MODEL_CHOICES if name in self.given}
+        asked = {name: getattr(self, name) for name in TRAINED_CHOICES if name in self.given}
         plan = UnloadPlan(self.method, self.fidelity, self.base, self.fibres, self.tol_mm, self.runs, self.rotations,
                           asked)
         if self.method != "auto":
