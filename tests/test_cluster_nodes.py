@@ -47,7 +47,7 @@ def cluster():
 
 
 def _worker_node(cluster):
-    """The cluster's one non-head node (after a loss, its replacement)."""
+    """The cluster's one non-head node."""
     workers = list(cluster.worker_nodes)
     assert len(workers) == 1, workers
     return workers[0]
