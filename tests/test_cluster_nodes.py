@@ -17,6 +17,7 @@ ray = pytest.importorskip("ray")
 
 from orchestrator.grid import SweepSpec  # noqa: E402
 from orchestrator.ray_session import init_ray  # noqa: E402
+from process_tree import processes_titled  # noqa: E402
 from orchestrator.sweep import run_sweep  # noqa: E402
 from storage.store import DONE, PairReader  # noqa: E402
 from trainer.checkpoint import load_run  # noqa: E402
@@ -59,31 +60,9 @@ def _raylet_pid(node) -> int:
     return node.all_processes[ray_constants.PROCESS_TYPE_RAYLET][0].process.pid
 
 
-def _descends_from(pid: int, ancestor: int) -> bool:
-    while pid > 1:
-        if pid == ancestor:
-            return True
-        try:
-            stat = (Path("/proc") / str(pid) / "stat").read_text()
-        except OSError:
-            return False
-        pid = int(stat.rsplit(")", 1)[1].split()[1])  # field 4, after the parenthesised name
-    return False
-
-
 def _busy_on(node, title: bytes = b"ray::run_chain") -> bool:
     """Whether a worker process of `node` runs `title` (a pressure chain, or a Ray Train worker)."""
-    raylet = _raylet_pid(node)
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            cmd = (d / "cmdline").read_bytes()
-        except OSError:
-            continue
-        if cmd.startswith(title) and _descends_from(int(d.name), raylet):
-            return True
-    return False
+    return bool(processes_titled(title, _raylet_pid(node)))
 
 
 def _epochs_logged(run) -> int:

@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 from orchestrator.grid import SweepSpec
 from orchestrator.ray_session import init_ray
 from orchestrator.sweep import run_sweep
+from process_tree import processes_titled
 from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, inspect_store, summarize
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -96,33 +97,11 @@ def inspect_runs(loc):
     return zarr.open_group(loc, mode="r").attrs["runs"]
 
 
-def _descends_from(pid: int, ancestor: int) -> bool:
-    while pid > 1:
-        if pid == ancestor:
-            return True
-        try:
-            stat = (Path("/proc") / str(pid) / "stat").read_text()
-        except OSError:
-            return False
-        pid = int(stat.rsplit(")", 1)[1].split()[1])  # field 4, after the parenthesised name
-    return False
-
-
 def _busy_case_workers() -> list[int]:
     """PIDs of this test's Ray worker processes currently running a pair (process title
     ray::run_chain); the local Ray started by the fixture descends from this process, so other
     Ray jobs on the machine are left alone."""
-    pids = []
-    for d in Path("/proc").iterdir():
-        if not d.name.isdigit():
-            continue
-        try:
-            cmd = (d / "cmdline").read_bytes()
-        except OSError:
-            continue
-        if cmd.startswith(b"ray::run_chain") and _descends_from(int(d.name), os.getpid()):
-            pids.append(int(d.name))
-    return pids
+    return processes_titled(b"ray::run_chain", os.getpid())
 
 
 def test_killed_worker_sweep_still_finishes(ray_cluster, tmp_path):
