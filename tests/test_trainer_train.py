@@ -449,13 +449,15 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
     import logging.config
     import threading
 
-    from trainer.ray_train import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
+    from trainer.ray_train import (LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK, PG_CALLBACK_LOGGER,
+                                   PG_STOP_TIMEOUT_MESSAGE)
 
     module, name = NO_DASHBOARD_SETUP_HOOK.rsplit(".", 1)
     hook = getattr(importlib.import_module(module), name)
     loggers = [logging.getLogger(n) for n in LOCAL_RAY_NOISY_LOGGERS]
     before = [list(lg.filters) for lg in loggers]
     excepthook_before = threading.excepthook
+    callback_before = list(logging.getLogger(PG_CALLBACK_LOGGER).filters)
     try:
         hook()
         hook()  # idempotent
@@ -476,8 +478,14 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
             t.start()
             t.join()
         assert seen == [("worker", ConnectionError), ("PlacementGroupCleanerMonitor", ValueError)]
+        # the controller's "could not stop the cleaner in time" traceback goes; its other errors stay
+        assert importlib.import_module(PG_CALLBACK_LOGGER).logger.name == PG_CALLBACK_LOGGER  # Ray's own name
+        callback = logging.getLogger(PG_CALLBACK_LOGGER)
+        assert not callback.filter(logging.makeLogRecord({"levelno": logging.ERROR, "msg": PG_STOP_TIMEOUT_MESSAGE + "."}))
+        assert callback.filter(logging.makeLogRecord({"levelno": logging.ERROR, "msg": "Failed to remove the group"}))
     finally:
         threading.excepthook = excepthook_before
+        logging.getLogger(PG_CALLBACK_LOGGER).filters = callback_before
         for lg, filters in zip(loggers, before):
             lg.filters = filters
 

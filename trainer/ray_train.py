@@ -87,6 +87,14 @@ def errors_only(record: logging.LogRecord) -> bool:
 # the State API error it does, and the thread ends with a traceback on the driver's terminal. Ray shuts
 # the whole local cluster down with the run, placement groups included, so nothing is left to clean.
 PG_CLEANER_THREAD = "PlacementGroupCleanerMonitor"
+# The controller then asks the cleaner to stop and, when the cleaner is still waiting on the State API,
+# logs the timeout with a traceback; the same cluster shutdown makes it moot.
+PG_CALLBACK_LOGGER = "ray.train.v2._internal.callbacks.placement_group_callback"
+PG_STOP_TIMEOUT_MESSAGE = "Failed to stop PlacementGroupCleaner gracefully"
+
+
+def not_pg_stop_timeout(record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith(PG_STOP_TIMEOUT_MESSAGE)
 
 
 def _silence_pg_cleaner_without_dashboard(previous):
@@ -102,13 +110,17 @@ def _silence_pg_cleaner_without_dashboard(previous):
 
 def quieten_local_ray() -> None:
     """worker_process_setup_hook for a dashboard-less local Ray: only errors from those two loggers,
-    and no traceback from the placement-group cleaner's thread failing to reach the State API."""
+    and no traceback from the placement-group cleaner failing to reach the State API (its thread) or
+    to stop in time (the controller's callback)."""
     import threading
 
     for name in LOCAL_RAY_NOISY_LOGGERS:
         logger = logging.getLogger(name)
         if errors_only not in logger.filters:
             logger.addFilter(errors_only)
+    callback_logger = logging.getLogger(PG_CALLBACK_LOGGER)
+    if not_pg_stop_timeout not in callback_logger.filters:
+        callback_logger.addFilter(not_pg_stop_timeout)
     if not getattr(threading.excepthook, "silences_pg_cleaner", False):
         threading.excepthook = _silence_pg_cleaner_without_dashboard(threading.excepthook)
 
