@@ -5,6 +5,7 @@ the node of one of them, restarts from its last checkpoint on the nodes left (Fa
 with the uninterrupted run's weights."""
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 from dataclasses import replace
@@ -22,6 +23,7 @@ from orchestrator.sweep import run_sweep  # noqa: E402
 from storage.store import DONE, PairReader  # noqa: E402
 from trainer.checkpoint import load_run  # noqa: E402
 from trainer.config import PAPER, TrainConfig  # noqa: E402
+from trainer.ray_train import LOCAL_RAY_TRAIN_ENV  # noqa: E402
 from trainer_fixtures import make_tiny_store  # noqa: E402
 
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
@@ -34,6 +36,8 @@ def cluster():
 
     recorded = Path("/tmp/ray/ray_current_cluster")  # where Ray notes the latest cluster for address "auto"
     before = recorded.read_bytes() if recorded.is_file() else None
+    env_before = {k: os.environ.get(k) for k in LOCAL_RAY_TRAIN_ENV}
+    os.environ.update(LOCAL_RAY_TRAIN_ENV)  # the nodes' processes inherit the local Ray's Ray Train settings
     c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
     c.add_node(num_cpus=1)
     c.wait_for_nodes()
@@ -41,6 +45,11 @@ def cluster():
     yield c
     ray.shutdown()
     c.shutdown()
+    for k, v in env_before.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
     if before is None:  # leave no dead cluster for a later `--address auto` to find
         recorded.unlink(missing_ok=True)
     else:

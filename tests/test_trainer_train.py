@@ -372,11 +372,12 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
 
 def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
     ray = pytest.importorskip("ray")
-    from trainer.ray_train import train_with_ray
+    from trainer.ray_train import local_ray_options, serves_state_api, train_with_ray
 
     run = tmp_path / "ray_run"
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)  # a new Ray, not another process's
+    ray.init(address="local", log_to_driver=False, **local_ray_options(2))  # a new Ray, as heartctl starts one
     try:
+        assert not serves_state_api()  # so the runs below go without the placement-group cleaner
         s = train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=2, max_failures=0)
         assert s["epoch"] == 2 and s["workers"] == 2 and s["backend"] == "gloo"
         state = load_run(run)
@@ -439,25 +440,20 @@ def test_a_refusal_on_one_rank_stops_every_rank(tmp_path):
     assert got == [(0, "cannot read store s.zarr (rank 1)", None), (1, "cannot read store s.zarr (rank 1)", None)]
 
 
-def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
+def test_local_ray_setup_hook_resolves_and_quietens_the_autoscaling_client():
     """The hook is given to Ray as a dotted path: it must import, and it drops the warnings (not the
-    errors) of the placement-group cleaner (every second without a dashboard) and of the
-    autoscaling-coordinator client (a traceback when its first request times out on a busy box),
-    also after a logging.config.dictConfig of their parent, as Ray Train's controller runs."""
+    errors) of the autoscaling-coordinator client (a traceback when its first request times out on a
+    busy box), also after a logging.config.dictConfig of their parent, as Ray Train's controller runs."""
     import importlib
     import logging
     import logging.config
-    import threading
 
-    from trainer.ray_train import (LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK, PG_CALLBACK_LOGGER,
-                                   PG_STOP_TIMEOUT_MESSAGE)
+    from trainer.ray_train import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
 
     module, name = NO_DASHBOARD_SETUP_HOOK.rsplit(".", 1)
     hook = getattr(importlib.import_module(module), name)
     loggers = [logging.getLogger(n) for n in LOCAL_RAY_NOISY_LOGGERS]
     before = [list(lg.filters) for lg in loggers]
-    excepthook_before = threading.excepthook
-    callback_before = list(logging.getLogger(PG_CALLBACK_LOGGER).filters)
     try:
         hook()
         hook()  # idempotent
@@ -467,42 +463,37 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_cleaner():
             assert lg.filter(logging.makeLogRecord({"levelno": logging.WARNING})) is False
             assert lg.filter(logging.makeLogRecord({"levelno": logging.ERROR}))
             assert len(lg.filters) == len(before[loggers.index(lg)]) + 1
-        # the cleaner thread's ConnectionError (no State API without a dashboard) prints nothing; any
-        # other thread's exception, or another exception of that thread, still reaches the old hook
-        seen = []
-        threading.excepthook = lambda args: seen.append((args.thread.name, args.exc_type))
-        hook()
-        for thread_name, exc in (("PlacementGroupCleanerMonitor", ConnectionError), ("worker", ConnectionError),
-                                 ("PlacementGroupCleanerMonitor", ValueError)):
-            t = threading.Thread(target=_raise, args=(exc,), name=thread_name)
-            t.start()
-            t.join()
-        assert seen == [("worker", ConnectionError), ("PlacementGroupCleanerMonitor", ValueError)]
-        # the controller's "could not stop the cleaner in time" traceback goes; its other errors stay
-        assert importlib.import_module(PG_CALLBACK_LOGGER).logger.name == PG_CALLBACK_LOGGER  # Ray's own name
-        callback = logging.getLogger(PG_CALLBACK_LOGGER)
-        assert not callback.filter(logging.makeLogRecord({"levelno": logging.ERROR, "msg": PG_STOP_TIMEOUT_MESSAGE + "."}))
-        assert callback.filter(logging.makeLogRecord({"levelno": logging.ERROR, "msg": "Failed to remove the group"}))
     finally:
-        threading.excepthook = excepthook_before
-        logging.getLogger(PG_CALLBACK_LOGGER).filters = callback_before
         for lg, filters in zip(loggers, before):
             lg.filters = filters
 
 
-def _raise(exc_type):
-    raise exc_type("test")
-
-
-def test_local_ray_turns_off_the_preemption_watcher_by_rays_own_name():
-    """The local Ray's environment names the flag Ray Train reads (a renamed flag would bring back the
-    watcher's error line in every local training run)."""
+def test_local_ray_environment_names_ray_trains_own_flags():
+    """The local Ray's environment names the flags Ray Train reads (a renamed flag would bring back the
+    preemption watcher's error line, or the 2 s checks, in every local training run)."""
     pytest.importorskip("ray")
-    from ray.train.v2._internal.constants import ENABLE_PREEMPTION_WATCHER_ENV_VAR
+    from ray.train.v2._internal.constants import ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR
 
     from trainer.ray_train import LOCAL_RAY_TRAIN_ENV
 
-    assert LOCAL_RAY_TRAIN_ENV == {ENABLE_PREEMPTION_WATCHER_ENV_VAR: "0"}
+    assert set(LOCAL_RAY_TRAIN_ENV) == {ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR}
+    assert LOCAL_RAY_TRAIN_ENV[ENABLE_PREEMPTION_WATCHER_ENV_VAR] == "0"
+
+
+def test_the_placement_group_cleaner_is_dropped_and_nothing_else():
+    """Without the State API the trainer's controller gets every default callback but the cleaner."""
+    pytest.importorskip("ray")
+    from ray.train import ScalingConfig
+    from ray.train.torch import TorchTrainer
+    from ray.train.v2._internal.callbacks.placement_group_callback import PlacementGroupCleanerCallback
+
+    from trainer.ray_train import without_pg_cleaner
+
+    trainer = TorchTrainer(lambda: None, scaling_config=ScalingConfig(num_workers=1))
+    full = [type(c) for c in trainer._create_default_callbacks()]
+    assert PlacementGroupCleanerCallback in full
+    without_pg_cleaner(trainer)
+    assert [type(c) for c in trainer._create_default_callbacks()] == [t for t in full if t is not PlacementGroupCleanerCallback]
 
 
 def _captured(logger_name: str, emit) -> list[str]:

@@ -22,19 +22,18 @@ from .loop import Dist, best_val_md, fit, pick_resume_state, write_metrics_csv
 REFUSED = "heartctl_refused"
 REFUSED_FILE = "refused.txt"
 RAY_RUN_NAME = "ray"  # Ray storage: <run_dir>/ray/ (the same name resumes the run)
-# Two harmless warnings of a local Ray without a dashboard (our --local mode), quietened in its
-# worker processes: Ray Train's placement-group cleaner polls the State API, which such a Ray does
-# not serve, and would warn every second of the run; and the controller's first resource request to
-# the autoscaling coordinator (there is no autoscaler on one machine) times out after 5 s while two
-# busy cores are still starting the workers, which it logs as a warning with a full traceback.
-# A filter, not a level: the controller's logging.config.dictConfig resets its child loggers' levels.
+# A harmless warning of a local Ray (our --local mode), quietened in its worker processes: the
+# controller's first resource request to the autoscaling coordinator (there is no autoscaler on one
+# machine) times out after 5 s while two busy cores are still starting the workers, which it logs as a
+# warning with a full traceback. A filter, not a level: the controller's logging.config.dictConfig
+# resets its child loggers' levels.
 NO_DASHBOARD_SETUP_HOOK = "trainer.ray_train.quieten_local_ray"
+LOCAL_RAY_NOISY_LOGGERS = ("ray.train.v2._internal.execution.scaling_policy.autoscaling_coordinator_client",)
 # A local Ray is one machine that no cloud drains: Ray Train's preemption watcher (an actor polling the
 # nodes' drain state, whose start logs a core-worker error line about its restart policy) has nothing
-# to watch there.
-LOCAL_RAY_TRAIN_ENV = {"RAY_TRAIN_ENABLE_PREEMPTION_WATCHER": "0"}
-LOCAL_RAY_NOISY_LOGGERS = ("ray.train.v2._internal.execution.controller.placement_group_cleaner",
-                           "ray.train.v2._internal.execution.scaling_policy.autoscaling_coordinator_client")
+# to watch there. Its controller checks the workers every 0.25 s rather than every 2 s: a step of its
+# start and its end waits one check, seconds in a short local run, and a check is a few local calls.
+LOCAL_RAY_TRAIN_ENV = {"RAY_TRAIN_ENABLE_PREEMPTION_WATCHER": "0", "RAY_TRAIN_HEALTH_CHECK_INTERVAL_S": "0.25"}
 
 
 def local_ray_options(num_cpus: int | None = None) -> dict:
@@ -82,47 +81,41 @@ def errors_only(record: logging.LogRecord) -> bool:
     return record.levelno >= logging.ERROR
 
 
-# The placement-group cleaner's monitor thread asks the State API whether the controller lives; without a
-# dashboard, on a busy box, that call can raise ConnectionError (which the loop does not catch) instead of
-# the State API error it does, and the thread ends with a traceback on the driver's terminal. Ray shuts
-# the whole local cluster down with the run, placement groups included, so nothing is left to clean.
-PG_CLEANER_THREAD = "PlacementGroupCleanerMonitor"
-# The controller then asks the cleaner to stop and, when the cleaner is still waiting on the State API,
-# logs the timeout with a traceback; the same cluster shutdown makes it moot.
-PG_CALLBACK_LOGGER = "ray.train.v2._internal.callbacks.placement_group_callback"
-PG_STOP_TIMEOUT_MESSAGE = "Failed to stop PlacementGroupCleaner gracefully"
-
-
-def not_pg_stop_timeout(record: logging.LogRecord) -> bool:
-    return not str(record.msg).startswith(PG_STOP_TIMEOUT_MESSAGE)
-
-
-def _silence_pg_cleaner_without_dashboard(previous):
-    """A threading.excepthook that drops the cleaner thread's ConnectionError and passes on the rest."""
-    def hook(args):
-        if getattr(args.thread, "name", "") == PG_CLEANER_THREAD and issubclass(args.exc_type, ConnectionError):
-            return
-        previous(args)
-
-    hook.silences_pg_cleaner = True
-    return hook
-
-
 def quieten_local_ray() -> None:
-    """worker_process_setup_hook for a dashboard-less local Ray: only errors from those two loggers,
-    and no traceback from the placement-group cleaner failing to reach the State API (its thread) or
-    to stop in time (the controller's callback)."""
-    import threading
-
+    """worker_process_setup_hook for a local Ray: only errors from the loggers above."""
     for name in LOCAL_RAY_NOISY_LOGGERS:
         logger = logging.getLogger(name)
         if errors_only not in logger.filters:
             logger.addFilter(errors_only)
-    callback_logger = logging.getLogger(PG_CALLBACK_LOGGER)
-    if not_pg_stop_timeout not in callback_logger.filters:
-        callback_logger.addFilter(not_pg_stop_timeout)
-    if not getattr(threading.excepthook, "silences_pg_cleaner", False):
-        threading.excepthook = _silence_pg_cleaner_without_dashboard(threading.excepthook)
+
+
+def serves_state_api() -> bool:
+    """Whether the Ray this process is connected to runs a dashboard, which serves the State API.
+    Ray Train's placement-group cleaner (an actor that removes the run's placement group if the
+    controller dies) asks the State API whether the controller lives; without it each question waits
+    10 s and fails, and the controller waits 12 s for the cleaner to stop at the end of every run.
+    Assumed served when Ray does not say."""
+    try:
+        from ray._private.worker import get_dashboard_url
+
+        return bool(get_dashboard_url())
+    except Exception:  # noqa: BLE001 - an older or newer Ray: keep Ray Train's defaults
+        return True
+
+
+def without_pg_cleaner(trainer) -> None:
+    """Drop the placement-group cleaner from a Ray Train trainer's controller callbacks (for a Ray
+    without the State API, where it cannot work: Ray removes a local cluster's placement groups when
+    the cluster stops). Leaves the trainer as it is when this Ray version builds its callbacks
+    otherwise."""
+    try:
+        from ray.train.v2._internal.callbacks.placement_group_callback import PlacementGroupCleanerCallback
+    except ImportError:
+        return
+    make = getattr(trainer, "_create_default_callbacks", None)
+    if make is None:
+        return
+    trainer._create_default_callbacks = lambda: [c for c in make() if not isinstance(c, PlacementGroupCleanerCallback)]
 
 
 # The INFO lines of every ray.train.report in a worker ("Checkpoint successfully created at: …" once an
@@ -290,6 +283,8 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
                              failure_config=FailureConfig(max_failures=max_failures),
                              checkpoint_config=CheckpointConfig(num_to_keep=2)),
     )
+    if not serves_state_api():
+        without_pg_cleaner(trainer)
     try:
         result = trainer.fit()
     except TrainingFailedError as exc:  # a worker's bad-input error reaches the caller as itself
