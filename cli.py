@@ -885,6 +885,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
                     compile_model: bool = typer.Option(False, "--compile", help="torch.compile the model (dynamic shapes)."),
                     profile: bool = typer.Option(False, "--profile", help="Also print torch.profiler's top operators "
                                                  "of a training step and of the largest inference batch."),
+                    min_seconds: float = typer.Option(1.0, "--min-seconds", help="Time each figure over at least this long."),
                     as_json: bool = typer.Option(False, "--json")):
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
     from trainer.bench import ModelBench
@@ -893,7 +894,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
         with _warnings_as_lines():
             r = ModelBench(device=device, nodes=nodes, config=config, batches=batches, train_batch=train_batch, bf16=bf16,
                            threads=threads, gat_kernel=gat_kernel, mesh=mesh, mesh_units=units.value,
-                           compile_model=compile_model, profile=profile).run()
+                           compile_model=compile_model, profile=profile, min_seconds=min_seconds).run()
     except _trainer_errors() as exc:
         fail(str(exc))
     _print_model_bench(r, as_json)

@@ -225,21 +225,23 @@ def test_resume_refuses_a_regenerated_store(tmp_path):
 
 
 def test_bench_model_small():
-    r = run("bench", "model", "--nodes", 120, "--batches", "1,2", "--train-batch", 2, "--json")
+    fast = ("--min-seconds", 0.05)  # figures from three calls each: this checks the output, not the speed
+    r = run("bench", "model", "--nodes", 120, "--batches", "1,2", "--train-batch", 2, "--json", *fast)
     assert r.exit_code == 0, r.output
     out = json.loads(r.output.strip().splitlines()[-1])
     assert [row["batch"] for row in out["inference"]] == [1, 2]
     assert out["train_graphs_per_s"] > 0 and out["parameters"] > 1e6
     assert out["gat_kernel"] == "sparse" and out["prepared_single"]["ms_per_case"] > 0
-    r = run("bench", "model", "--nodes", 120, "--batches", "1", "--train-batch", 1, "--gat-kernel", "pyg", "--json")
+    r = run("bench", "model", "--nodes", 120, "--batches", "1", "--train-batch", 1, "--gat-kernel", "pyg", "--json", *fast)
     assert r.exit_code == 0 and json.loads(r.output.strip().splitlines()[-1])["gat_kernel"] == "pyg"
     assert out["response_ms_per_mesh"] is None  # paper: no linear response in its input
     # the mean-teacher model: the timed step runs the reverse decoder, the teacher and the weight average
-    r = run("bench", "model", "--nodes", 120, "--config", "R5-resp-d0", "--batches", "1", "--train-batch", 2)
+    r = run("bench", "model", "--nodes", 120, "--config", "R5-resp-d0", "--batches", "1", "--train-batch", 2, *fast)
     assert r.exit_code == 0, r.output
     assert "linear FE response" in r.output and "ms" in r.output.split("linear FE response")[1]
     assert_bad_input(run("bench", "model", "--batches", "1,x"), "--batches")
     assert_bad_input(run("bench", "model", "--gat-kernel", "dense"), "--gat-kernel")
+    assert_bad_input(run("bench", "model", "--min-seconds", -1), "--min-seconds")
     assert_bad_input(run("bench", "model", "--mesh", "/nonexistent/lv.vtu"), "no such file")
     import torch
 

@@ -82,7 +82,8 @@ class ModelBench:
     """What `heartctl bench model` times: `config`'s network on `device` (cpu | cuda), at the
     comma-separated inference `batches` and a `train_batch` (None: 32 on a CPU, 128 on a GPU), on a
     gmsh mesh of about `nodes` nodes or the `mesh` file (in `mesh_units`); `threads` torch CPU threads
-    (None: torch's), `bf16`, `gat_kernel` (sparse | pyg), `compile_model`, and `profile` tables."""
+    (None: torch's), `bf16`, `gat_kernel` (sparse | pyg), `compile_model`, and `profile` tables; each
+    figure is timed over at least `min_seconds` (and three calls)."""
 
     device: str = "cpu"
     nodes: int = 650
@@ -96,6 +97,7 @@ class ModelBench:
     mesh_units: str = "mm"
     compile_model: bool = False
     profile: bool = False
+    min_seconds: float = 1.0
 
     def __post_init__(self):
         from solver.meshing import check_node_target
@@ -108,6 +110,8 @@ class ModelBench:
             raise ValueError(f"--device must be cpu or cuda, got {self.device!r}")
         if self.threads is not None and self.threads < 1:
             raise ValueError("--threads must be ≥ 1")
+        if not 0 <= self.min_seconds <= 600:
+            raise ValueError(f"--min-seconds must be in 0–600, got {self.min_seconds:g}")
         if self.mesh is not None and not Path(self.mesh).is_file():
             raise ValueError(f"--mesh {self.mesh}: no such file")
         if self.mesh is None and self.mesh_units != "mm":
@@ -126,7 +130,8 @@ class ModelBench:
             torch.set_num_threads(self.threads)
         return bench_model(self.device, self.nodes, self.config, self.batch_sizes, self.train_batch, self.bf16,
                            gat_kernel=self.gat_kernel, mesh_path=None if self.mesh is None else str(self.mesh),
-                           compile_model=self.compile_model, profile=self.profile, mesh_units=self.mesh_units)
+                           compile_model=self.compile_model, profile=self.profile, mesh_units=self.mesh_units,
+                           min_s=self.min_seconds)
 
 
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
