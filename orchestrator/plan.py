@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 
-from storage.store import DONE, FAILED, PairReader, encoded_case_bytes
+from storage.store import CHUNK_PER_CASE, DONE, FAILED, PairReader, case_layout, encoded_case_bytes
 
 from .grid import MAX_CHAIN, SweepSpec
 from .tasks import mesh_shape, run_case, run_chain
@@ -16,10 +16,11 @@ WORKER_VCPUS = 32  # cluster.yaml's worker node (c7i.8xlarge)
 SHAPE_OBJECTS = 21  # per shape: its group's zarr.json, 11 arrays' zarr.json, 9 single-chunk arrays
 
 
-def store_objects(shapes: int, cases_per_shape: int) -> int:
+def store_objects(shapes: int, cases_per_shape: int, sharded: bool = True) -> int:
     """Objects the store holds when complete (files on disk, keys in S3): per shape its group and array
-    metadata and single-chunk arrays, and one chunk per case of `unloaded` and of `loaded`; plus the root."""
-    return shapes * (SHAPE_OBJECTS + 2 * cases_per_shape) + 2
+    metadata and single-chunk arrays, and one shard of `unloaded` and one of `loaded` (a version 1
+    store: one chunk per case of each); plus the root."""
+    return shapes * (SHAPE_OBJECTS + 2 * (1 if sharded else cases_per_shape)) + 2
 
 
 def existing_counts(location: str, spec: SweepSpec) -> dict:
@@ -74,7 +75,8 @@ def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: i
         "cases_per_shape": spec.cases_per_shape, "cases": spec.n_cases, "done": counts["done"],
         "failed": counts["failed"], "to_run": remaining, "fidelity": spec.fidelity, "seed": spec.seed,
         "mesh_nodes": spec.nodes, "grid": spec.grid_attrs(),
-        "store_objects": store_objects(spec.shapes, spec.cases_per_shape),
+        "store_objects": store_objects(spec.shapes, spec.cases_per_shape,
+                                       store_attrs is None or case_layout(store_attrs) != CHUNK_PER_CASE),
     }
     if calibration:
         cal = calibrate(spec, warm_start)

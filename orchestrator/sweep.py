@@ -1,6 +1,8 @@
 """The sweep driver: phase 1 meshes the shapes (Ray tasks) and writes them with every case array;
 phase 2 runs the pairs as Ray tasks, one pressure chain per task (bounded in flight with `ray.wait`);
 tasks return arrays and the driver — the store's only writer — validates, writes and marks each case.
+In a sharded store the driver holds a shape's returned cases and writes them together (HeldResults),
+so that a shape's shard is rewritten a few times, not once per chain.
 
 Failures: a lost worker or node is retried by Ray (`max_retries`), after which the task's cases stay
 pending for the next run (failed once that has happened to a case in MAX_LOSSES runs); a solver failure (or any exception a case's solve raises) is retried once
@@ -27,6 +29,7 @@ from .grid import MAX_CHAIN, SweepSpec, pressure_chains
 
 TASK_MAX_RETRIES = 3  # worker process crash / node loss
 FLUSH_INTERVAL_S = 2.0
+WRITE_HOLD_S = 30.0  # the longest a returned case waits to be written into its shape's shard
 
 
 class SweepConflict(ValueError):
@@ -360,6 +363,9 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
                 ks = np.flatnonzero(wanted)
                 todo.extend((s, chain) for chain in pressure_chains(store.params, ks, chain_length))
             n_pairs = sum(len(chain) for _, chain in todo)
+            held = HeldResults(store.sharded, lambda s: int((store.table(s).status == DONE).sum()))
+            for s, _ in todo:
+                held.expect(s)
             bar.phase(f"solving {n_pairs} pairs ({len(todo)} pressure chains) on {cpus:g} CPUs")
             inflight: dict = {}
             while todo or inflight:
@@ -379,14 +385,16 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
                     except Exception as exc:
                         results = _failed_task_results(store, s, chain, exc)
                         report.lost += sum(r is None for r in results)
-                    for k, result in zip(chain, results):
-                        if result is None:  # lost with its worker: pending for the next run
-                            continue
-                        if result.get("pid") is not None:
+                    for result in results:
+                        if result is not None and result.get("pid") is not None:
                             report.workers.add((result.get("node") or result.get("host"), result["pid"]))
-                        t_w = time.perf_counter()
-                        status = _record(store, s, k, result, submitted_at, run)
-                        report.driver_store_s += time.perf_counter() - t_w
+                    # a case lost with its worker (None) stays pending for the next run
+                    held.add(s, [(k, r, submitted_at) for k, r in zip(chain, results) if r is not None])
+                for s in held.due():
+                    t_w = time.perf_counter()
+                    recorded = _record(store, s, held.take(s), run)
+                    report.driver_store_s += time.perf_counter() - t_w
+                    for k, status in recorded:
                         if status == DONE:
                             report.done += 1
                         else:
@@ -461,18 +469,64 @@ def _tet_mesh(store: PairStore, s: int):
                    a["epi"].astype(np.int64), a["base"].astype(np.int64), {"shape_id": s})
 
 
-def _record(store: PairStore, s: int, k: int, result: dict, submitted_at: float, run: int) -> int:
-    values = dict(result.get("stats") or {})
-    values.update({"solve_attempts": result.get("attempts"), "task_wall_s": result.get("task_wall_s"),
-                   "submitted_at": submitted_at, "started_at": result.get("started_at"),
-                   "finished_at": result.get("finished_at"), "worker_pid": result.get("pid"), "run": run})
-    reason = result.get("reason")
-    if result.get("ok"):
-        reason = store.write_pair(s, k, result["unloaded"], result["loaded"], values)
-    values["stored_at"] = time.time()
-    status = DONE if reason is None else FAILED
-    store.set_case(s, k, status, stats_row(values), result.get("host"), reason)
-    return status
+class HeldResults:
+    """The returned cases the driver has not written yet, per shape. Each object of a sharded store
+    is a whole shape's shard, rewritten whole by every write into it, so a shape's cases are written
+    together: when none of its chains is waiting or in flight any more, when they are at least as
+    many as the cases its shard already holds (each write doubles the shard: about log2(chains) + 1
+    writes while the chains return close together), or when the oldest has waited WRITE_HOLD_S. A version 1
+    store (an object per case) writes each task's cases at once. Held cases are pending: a driver
+    killed while it holds them leaves them to the next run.
+
+    stored(shape): how many cases the shape's shard holds (its done cases)."""
+
+    def __init__(self, hold: bool, stored, clock=time.monotonic):
+        from collections import Counter
+
+        self.hold, self._stored, self._clock = hold, stored, clock
+        self._outstanding = Counter()  # shape → its chains waiting or in flight
+        self._held: dict[int, tuple[float, list]] = {}  # shape → (since, [(k, result, submitted_at)])
+
+    def expect(self, shape: int) -> None:
+        """A chain of the shape is to be submitted."""
+        self._outstanding[shape] += 1
+
+    def add(self, shape: int, items: list) -> None:
+        """A chain of the shape returned: its (k, result, submitted_at) of the cases to record."""
+        self._outstanding[shape] -= 1
+        if items:
+            self._held.setdefault(shape, (self._clock(), []))[1].extend(items)
+
+    def due(self) -> list[int]:
+        """The shapes whose held cases are to be written now."""
+        now = self._clock()
+        return [s for s, (since, items) in list(self._held.items())
+                if not self.hold or self._outstanding[s] <= 0 or len(items) >= self._stored(s)
+                or now - since >= WRITE_HOLD_S]
+
+    def take(self, shape: int) -> list:
+        return self._held.pop(shape)[1]
+
+
+def _record(store: PairStore, s: int, items: list, run: int) -> list[tuple[int, int]]:
+    """Write the returned cases (k, result, submitted_at) of shape s in one write_pairs (its shard
+    rewritten once) and mark each done or failed; returns (k, status) in the order given."""
+    values = {}
+    for k, result, submitted_at in items:
+        values[k] = dict(result.get("stats") or {})
+        values[k].update({"solve_attempts": result.get("attempts"), "task_wall_s": result.get("task_wall_s"),
+                          "submitted_at": submitted_at, "started_at": result.get("started_at"),
+                          "finished_at": result.get("finished_at"), "worker_pid": result.get("pid"), "run": run})
+    solved = {k: (r["unloaded"], r["loaded"], values[k]) for k, r, _ in items if r.get("ok")}
+    written = store.write_pairs(s, solved) if solved else {}
+    out = []
+    for k, result, _ in items:
+        reason = written[k] if k in solved else result.get("reason")
+        values[k]["stored_at"] = time.time()
+        status = DONE if reason is None else FAILED
+        store.set_case(s, k, status, stats_row(values[k]), result.get("host"), reason)
+        out.append((k, status))
+    return out
 
 
 MAX_LOSSES = 3  # a case whose task was lost with its worker this many times (over runs) is failed

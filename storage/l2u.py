@@ -219,15 +219,15 @@ def import_l2u(root, location, progress=None) -> ImportReport:
                               {"source_shape": shape, "source_split": data[0][0].split, "n_source_pairs": len(data)})
             present = set()
             files = {}
-            for pair, ed, un in data:
-                k = index[tuple(pair.params)]
-                min_j = _min_jacobian(un, ed, mesh.tets)
-                # the acceptance checks (finite, no inverted tet, min det F > 0) apply; no solve ran
-                # here, so the solver's round trip and residual pass trivially and are stored as NaN
-                reason = store.write_pair(shape_id, k, un, ed, {"roundtrip_error_mm": 0.0, "min_jacobian": min_j,
+            # the acceptance checks (finite, no inverted tet, min det F > 0) apply; no solve ran here,
+            # so the solver's round trip and residual pass trivially and are stored as NaN
+            cases = {index[tuple(pair.params)]: (pair, ed, un, _min_jacobian(un, ed, mesh.tets)) for pair, ed, un in data}
+            reasons = store.write_pairs(shape_id, {k: (un, ed, {"roundtrip_error_mm": 0.0, "min_jacobian": min_j,
                                                                 "final_residual": 0.0})
-                if reason is not None:
-                    report.skip(reason, pair.ed_path.name)
+                                                   for k, (_, ed, un, min_j) in cases.items()})  # one shard write
+            for k, (pair, _, _, min_j) in cases.items():
+                if reasons[k] is not None:
+                    report.skip(reasons[k], pair.ed_path.name)
                     continue
                 store.set_case(shape_id, k, DONE, stats_row({"min_jacobian": min_j}))
                 present.add(k)

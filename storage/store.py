@@ -13,8 +13,14 @@ Layout (one writer: the sweep driver)::
         params [K,4]        float64, the case table's parameters (P mmHg, C Pa, θendo °, θepi °)
         status [K]          int8, 0 pending / 1 done / 2 failed
         stats [K,S]         float64, solver and timing statistics (names in the root attr stat_names)
-        unloaded [K,n,3]    float32, mm, one case per chunk (fill NaN)
-        loaded [K,n,3]      float32, mm, one case per chunk (fill NaN)
+        unloaded [K,n,3]    float32, mm, one shard per shape holding one chunk per case (fill NaN)
+        loaded [K,n,3]      float32, mm, likewise
+
+Schema version 2 stores `unloaded` and `loaded` with Zarr's sharding codec (root attr case_layout
+"shard per shape"): one object per shape and array, an inner chunk per case, each inner chunk with its
+own CRC-32C (and the shard index with one), so a damaged case is named alone. Version 1 stores (no
+case_layout: "chunk per case") hold one object per case and array; they are read and resumed as
+they are.
 
 Coordinates are float32 (precision ≈ 4e-6 mm at 60 mm, far below the solver's 1e-4 mm tolerance);
 this keeps the full paper sweep at ~1000 nodes near 0.4 GB compressed.
@@ -23,11 +29,14 @@ A case's status becomes `done` only after its two chunks were written, read back
 finite, free of inverted tets, and the solve met its convergence tolerance. Status, stats and the
 per-case hosts/failure reasons are rewritten by the driver in that order (stats, attrs, status), so
 a driver killed at any point leaves, at worst, a finished case still `pending` (it is recomputed),
-never a `done` case with missing data. Local writes are atomic (zarr's LocalStore writes a temporary
-file and renames it); object stores (S3, GCS) put whole objects.
+never a `done` case with missing data. Every object is written whole: local writes are atomic
+(zarr ≥ 3.1.3's LocalStore writes a temporary file and renames it), object stores (S3, GCS) put
+whole objects. Writing cases into a shard rewrites it whole, the other cases' inner chunks copied as
+they are (bytes and checksum), so a writer killed mid-write leaves the old shard or the new one.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import re
@@ -39,7 +48,9 @@ from pathlib import Path
 import numpy as np
 
 SCHEMA = "heartctl.lv-pairs"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READ_VERSIONS = (1, 2)
+CHUNK_PER_CASE, SHARD_PER_SHAPE = "chunk per case", "shard per shape"  # the root attr case_layout (version 1: absent)
 PENDING, DONE, FAILED = 0, 1, 2
 STATUS_NAMES = {PENDING: "pending", DONE: "done", FAILED: "failed"}
 PARAM_NAMES = ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg")
@@ -238,11 +249,19 @@ def inspect_store(location, storage_options: dict | None = None) -> dict | None:
     if attrs.get("schema") != SCHEMA:
         found = attrs.get("schema", "none")
         raise StoreError(f"{location} is a Zarr store of another schema ({found!r}, expected {SCHEMA!r})")
-    if attrs.get("schema_version") != SCHEMA_VERSION:
+    if attrs.get("schema_version") not in READ_VERSIONS:
         raise StoreError(f"{location} has schema version {attrs.get('schema_version')!r}; "
-                         f"this heartctl reads version {SCHEMA_VERSION}")
+                         f"this heartctl reads versions {' and '.join(map(str, READ_VERSIONS))}")
     _check_root_attrs(location, attrs)
+    if case_layout(attrs) not in (CHUNK_PER_CASE, SHARD_PER_SHAPE):
+        raise StoreError(f"{location}: root attribute 'case_layout' is {attrs.get('case_layout')!r}, expected "
+                         f"{SHARD_PER_SHAPE!r}; the store was edited or damaged")
     return attrs
+
+
+def case_layout(attrs: dict) -> str | None:
+    """How a store keeps its case arrays: SHARD_PER_SHAPE (schema version 2) or CHUNK_PER_CASE (version 1)."""
+    return CHUNK_PER_CASE if attrs.get("schema_version") == 1 else attrs.get("case_layout")
 
 
 ROOT_ATTR_TYPES = {"grid": dict, "case_params": list, "n_cases_per_shape": int, "acceptance": dict, "runs": list,
@@ -300,13 +319,49 @@ def _chunk_damage(group, k: int) -> tuple[tuple | None, str | None]:
         return None, _damage(exc)
 
 
+def cases_per_object(array) -> int:
+    """Cases one stored object of a case array holds: a shard's (version 2) or a chunk's (1)."""
+    return int((array.shards or array.chunks)[0])
+
+
+def read_cases(group, ks) -> tuple[dict, dict]:
+    """({k: (unloaded, loaded)}, {k: the damage in words}) of cases ks of a shape's group, read one
+    stored object at a time (a shape's shard in one read, a version 1 store's chunk per case). An object
+    that does not read whole is read case by case, so that each damaged case is named alone."""
+    unloaded, loaded = group["unloaded"], group["loaded"]
+    per_object = cases_per_object(unloaded)
+    arrays, damage = {}, {}
+    ks = sorted(int(k) for k in ks)
+    for _, members in itertools.groupby(ks, key=lambda k: k // per_object):
+        members = list(members)
+        lo, hi = members[0], members[-1] + 1
+        try:
+            u, l = unloaded[lo:hi], loaded[lo:hi]
+        except (TypeError, AttributeError, NameError):
+            raise
+        except Exception:
+            for k in members:
+                pair, why = _chunk_damage(group, k)
+                if why is None:
+                    arrays[k] = pair
+                else:
+                    damage[k] = why
+            continue
+        arrays.update({k: (u[k - lo], l[k - lo]) for k in members})
+    return arrays, damage
+
+
+def _damaged_error(location: str, shape_id: int, k: int, damage: str) -> StoreError:
+    where = f"store {location}: " if location else ""
+    return StoreError(f"{where}shape {shape_id} case {k} is damaged: {damage}; {RECOMPUTE_HINT}")
+
+
 def read_case_chunks(group, shape_id: int, k: int, location: str = "") -> tuple[np.ndarray, np.ndarray]:
     """(unloaded, loaded) of case k from a shape's group; StoreError naming the store and the case
     when a chunk is damaged."""
     arrays, damage = _chunk_damage(group, k)
     if damage is not None:
-        where = f"store {location}: " if location else ""
-        raise StoreError(f"{where}shape {shape_id} case {k} is damaged: {damage}; {RECOMPUTE_HINT}")
+        raise _damaged_error(location, shape_id, k, damage)
     return arrays
 
 
@@ -314,12 +369,28 @@ def damaged_cases(group_of, shape_ids, status_of) -> list[tuple[int, int, str]]:
     """(shape, case, reason) of every done case whose chunks do not read back intact."""
     out = []
     for s in shape_ids:
-        g = group_of(s)
-        for k in np.flatnonzero(status_of(s) == DONE):
-            damage = _chunk_damage(g, int(k))[1]
-            if damage is not None:
-                out.append((s, int(k), damage))
+        _, damage = read_cases(group_of(s), np.flatnonzero(status_of(s) == DONE))
+        out.extend((s, k, why) for k, why in sorted(damage.items()))
     return out
+
+
+def _write_rows(array, ks: list, block: np.ndarray) -> None:
+    """array[k] = block[i] for the sorted case indices ks. Into a shard, in one write (one rewrite of
+    the shard) as a coordinate selection (orthogonal ones fail to write into a sharded array in zarr
+    3.1): that decodes the inner chunks it replaces, so when one of them is damaged (a case written
+    before and damaged since) the rows are written run by run instead, whole inner chunks that
+    nothing decodes. A chunk per case (version 1) is written run by run, each chunk whole, unread."""
+    runs = [list(run) for _, run in itertools.groupby(range(len(ks)), key=lambda i: ks[i] - i)]
+    if array.shards is not None and len(runs) > 1:
+        n, d = block.shape[1:]
+        try:
+            array.vindex[np.asarray(ks)[:, None, None], np.arange(n)[None, :, None], np.arange(d)[None, None, :]] = block
+            return
+        except ValueError as exc:
+            if not _is_checksum_error(exc):
+                raise
+    for run in runs:
+        array[ks[run[0]]:ks[run[-1]] + 1] = block[run[0]:run[-1] + 1]
 
 
 def _codecs() -> tuple:
@@ -394,6 +465,7 @@ class PairStore:
         self.n_cases = int(self.attrs["n_cases_per_shape"])
         self.params = np.asarray(self.attrs["case_params"], dtype=float).reshape(self.n_cases, len(PARAM_NAMES))
         self.roundtrip_tol_mm = float(self.attrs["acceptance"]["roundtrip_tol_mm"])
+        self.sharded = case_layout(self.attrs) == SHARD_PER_SHAPE  # else a version 1 store, resumed as it is
         self._tables: dict[int, _Table] = {}
         self._handles: dict[int, dict] = {}  # shape → cached tets and array handles
         self._last_flush = time.monotonic()
@@ -406,7 +478,8 @@ class PairStore:
         base = {"schema": SCHEMA, "schema_version": SCHEMA_VERSION, "units": UNITS,
                 "param_names": list(PARAM_NAMES), "stat_names": list(STAT_NAMES),
                 "status_codes": {v: k for k, v in STATUS_NAMES.items()},
-                "coordinate_dtype": np.dtype(COORD_DTYPE).name, "created": _now_iso(), "runs": [],
+                "coordinate_dtype": np.dtype(COORD_DTYPE).name, "case_layout": SHARD_PER_SHAPE,
+                "created": _now_iso(), "runs": [],
                 "mesh_failures": {}}
         base.update(attrs)
         for key in ("n_cases_per_shape", "case_params", "acceptance", "grid"):
@@ -480,9 +553,10 @@ class PairStore:
         g.create_array("status", shape=(K,), chunks=(K,), dtype=np.int8, fill_value=PENDING, compressors=comp)
         g.create_array("stats", shape=(K, len(STAT_NAMES)), chunks=(K, len(STAT_NAMES)), dtype=np.float64,
                        fill_value=np.nan, compressors=comp)
-        for name in ("unloaded", "loaded"):
-            g.create_array(name, shape=(K, n, 3), chunks=(1, n, 3), dtype=COORD_DTYPE, fill_value=np.nan,
-                           compressors=comp, dimension_names=("case", "node", "xyz"))
+        for name in ("unloaded", "loaded"):  # a shard per shape (an object per case in a version 1 store)
+            g.create_array(name, shape=(K, n, 3), chunks=(1, n, 3), shards=(K, n, 3) if self.sharded else None,
+                           dtype=COORD_DTYPE, fill_value=np.nan, compressors=comp,
+                           dimension_names=("case", "node", "xyz"))
         g.attrs.update(_jsonable({"shape_id": shape_id, "n_nodes": n, "n_tets": int(np.asarray(tets).shape[0]),
                                   "n_cases": K, "hosts": {}, "failures": {}, "info": info or {}}))
         g.attrs.update({"ready": True})  # last: a shape without it is re-meshed on resume
@@ -525,19 +599,31 @@ class PairStore:
         return self.table(shape_id).status.copy()
 
     def write_pair(self, shape_id: int, k: int, unloaded, loaded, stats: dict) -> str | None:
-        """Validate, write and read back the two chunks of case k. Returns None when the case may
-        be marked done, else the reason it may not (nothing is marked here)."""
+        """write_pairs for one case: None when case k may be marked done, else the reason it may not."""
+        return self.write_pairs(shape_id, {k: (unloaded, loaded, stats)})[k]
+
+    def write_pairs(self, shape_id: int, pairs: dict) -> dict:
+        """Validate, write and read back cases of one shape; pairs maps k → (unloaded, loaded, stats).
+        The valid ones are written in one write per array (in a sharded store, one rewrite of the
+        shape's shard, whose other cases are copied as they are), then read back. Returns k → None
+        when the case may be marked done, else the reason it may not (nothing is marked here)."""
         h = self._handle(shape_id)
-        reason = validate_pair(h["tets"], h["n"], unloaded, loaded, stats, self.roundtrip_tol_mm)
-        if reason is not None:
-            return f"invalid result: {reason}"
-        for name, x in (("unloaded", unloaded), ("loaded", loaded)):
-            x32 = np.asarray(x, dtype=COORD_DTYPE)
-            h[name][k] = x32
-            back = h[name][k]
-            if not np.array_equal(back, x32):
-                return f"read-back of {name} differs from what was written"
-        return None
+        reasons, valid = {}, {}
+        for k, (unloaded, loaded, stats) in pairs.items():
+            reason = validate_pair(h["tets"], h["n"], unloaded, loaded, stats, self.roundtrip_tol_mm)
+            if reason is None:
+                valid[int(k)] = (unloaded, loaded)
+            else:
+                reasons[k] = f"invalid result: {reason}"
+        ks = sorted(valid)
+        for i, name in enumerate(("unloaded", "loaded") if ks else ()):
+            block = np.stack([np.asarray(valid[k][i], dtype=COORD_DTYPE) for k in ks])
+            _write_rows(h[name], ks, block)
+            back = h[name].oindex[ks]
+            for j, k in enumerate(ks):
+                if k not in reasons and not np.array_equal(back[j], block[j]):
+                    reasons[k] = f"read-back of {name} differs from what was written"
+        return {k: reasons.get(k) for k in pairs}
 
     def set_case(self, shape_id: int, k: int, status: int, stats_row: np.ndarray, host: str | None = None,
                  reason: str | None = None) -> None:
@@ -560,7 +646,20 @@ class PairStore:
             self.set_case(s, k, PENDING, np.full(len(STAT_NAMES), np.nan))
         if found:
             self.flush()
+        for s in sorted({s for s, _, _ in found}):
+            if self.sharded and not (self.table(s).status == DONE).any():
+                self._drop_cases(s)
         return found
+
+    def _drop_cases(self, shape_id: int) -> None:
+        """Delete the case shards of a shape that has no done case: a shard whose index is damaged
+        cannot be rewritten in part (zarr reads it first), and holds nothing a reader may see."""
+        from zarr.core.sync import sync
+
+        h = self._handle(shape_id)
+        for name in ("unloaded", "loaded"):
+            array = h[name]
+            sync(array.store.delete(f"{array.path}/{array.metadata.encode_chunk_key((0, 0, 0))}"))
 
     def note_loss(self, shape_id: int, k: int) -> int:
         """Count a task for case k lost with its worker or node (the case stays pending); returns
@@ -682,24 +781,31 @@ class PairReader:
             raise StoreError(f"case {k} out of range 0..{self.n_cases - 1}")
         if status[k] != DONE:
             raise StoreError(f"case {k} of shape {shape_id} is {STATUS_NAMES[int(status[k])]}, not done")
-        g = self._shape(shape_id)
-        s = self._static(shape_id)
-        unloaded, loaded = read_case_chunks(g, shape_id, k, self.location)
+        unloaded, loaded = read_case_chunks(self._shape(shape_id), shape_id, k, self.location)
+        return self._case(shape_id, k, unloaded, loaded, self.stats(shape_id) if _stats is None else _stats)
+
+    def _case(self, shape_id: int, k: int, unloaded, loaded, stats: np.ndarray) -> Case:
         if not (np.all(np.isfinite(unloaded)) and np.all(np.isfinite(loaded))):
             raise StoreError(f"case {k} of shape {shape_id} is marked done but its data are not finite")
-        row = (self.stats(shape_id) if _stats is None else _stats)[k]
+        s = self._static(shape_id)
         return Case(shape_id, int(k), dict(zip(PARAM_NAMES, map(float, s["params"][k]))), unloaded, loaded,
-                    s["ed_reference"], s["tets"], dict(zip(self.stat_names, map(float, row))))
+                    s["ed_reference"], s["tets"], dict(zip(self.stat_names, map(float, stats[k]))))
 
     def damaged(self, shape_ids=None) -> list[tuple[int, int, str]]:
         """(shape, case, reason) of every done case whose chunks are damaged (reads them all)."""
         return damaged_cases(self._shape, self.shape_ids() if shape_ids is None else shape_ids, self.status)
 
     def iter_done(self, shape_ids=None):
+        """Every done case, shape by shape, each shape's cases read one stored object at a time
+        (read_cases: a shard in one read); StoreError at the first damaged case."""
         for s in (self.shape_ids() if shape_ids is None else shape_ids):
             status, stats = self.status(s), self.stats(s)
-            for k in np.flatnonzero(status == DONE):
-                yield self.case(s, int(k), status, stats)
+            ks = np.flatnonzero(status == DONE)
+            arrays, damage = read_cases(self._shape(s), ks)
+            for k in map(int, ks):
+                if k in damage:
+                    raise _damaged_error(self.location, s, k, damage[k])
+                yield self._case(s, k, *arrays[k], stats)
 
 
 def read_done_cases(location, shape_ids=None, storage_options: dict | None = None):
@@ -878,8 +984,12 @@ def store_bytes(location) -> int | None:
     return total
 
 
+SHARD_INDEX_BYTES_PER_CASE = 16  # a shard index's (offset, length) per inner chunk; plus 4 bytes of CRC-32C a shard
+
+
 def encoded_case_bytes(unloaded: np.ndarray, loaded: np.ndarray) -> int:
-    """Bytes one case takes in the store (both chunks, compressed as the store does)."""
+    """Bytes one case takes in the store (both chunks, compressed as the store does, and their
+    entries in the shards' indexes)."""
     import zarr
     from zarr.storage import MemoryStore
 
@@ -890,7 +1000,8 @@ def encoded_case_bytes(unloaded: np.ndarray, loaded: np.ndarray) -> int:
         a = g.create_array(name, shape=(1, n, 3), chunks=(1, n, 3), dtype=COORD_DTYPE, fill_value=np.nan,
                            compressors=_codecs())
         a[0] = np.asarray(x, dtype=COORD_DTYPE)
-    return sum(len(v.to_bytes()) for k, v in store._store_dict.items() if "/c/" in k)
+    chunks = sum(len(v.to_bytes()) for k, v in store._store_dict.items() if "/c/" in k)
+    return chunks + 2 * SHARD_INDEX_BYTES_PER_CASE
 
 
 def attrs_json(attrs: dict) -> str:

@@ -75,14 +75,19 @@ def test_round_trip_and_done_only_reads(tmp_path, shape0, real_pair):
         reader.case(1, 0)
 
     attrs = inspect_store(loc)
-    assert attrs["schema_version"] == 1 and attrs["units"]["length"] == "mm"
+    assert attrs["schema_version"] == 2 and attrs["units"]["length"] == "mm"
+    assert attrs["case_layout"] == "shard per shape"
     assert attrs["grid"]["pressure_mmhg"] == [8.0, 12.0] and attrs["fidelity"] == "fast" and attrs["seed"] == 0
     root = zarr.open_group(loc, mode="r")
     u = root["shapes/0/unloaded"]
-    assert u.shape == (2, shape0["mesh"].n_nodes, 3) and u.chunks == (1, shape0["mesh"].n_nodes, 3)
-    codecs = [c.__class__.__name__ for c in u.metadata.codecs]
-    assert u.dtype == np.float32 and codecs[-2:] == ["BloscCodec", "Crc32cCodec"]  # compressed, then checksummed
-    for name in ("ed_reference", "tets", "endo", "params", "status", "stats", "loaded"):
+    n = shape0["mesh"].n_nodes
+    assert u.shape == (2, n, 3) and u.chunks == (1, n, 3) and u.shards == (2, n, 3)  # one shard per shape
+    (sharding,) = u.metadata.codecs
+    codecs = [c.__class__.__name__ for c in sharding.codecs]
+    assert u.dtype == np.float32 and codecs[-2:] == ["BloscCodec", "Crc32cCodec"]  # each case compressed, then checksummed
+    assert sharding.index_codecs[-1].__class__.__name__ == "Crc32cCodec"
+    assert root["shapes/0/loaded"].metadata.codecs == u.metadata.codecs
+    for name in ("ed_reference", "tets", "endo", "params", "status", "stats"):
         assert root[f"shapes/0/{name}"].metadata.codecs[-1].__class__.__name__ == "Crc32cCodec", name
 
     s = summarize(loc)

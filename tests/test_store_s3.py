@@ -184,16 +184,16 @@ def test_generate_status_export_through_the_cli(s3, generated, local_reference, 
     _assert_same_pairs(PairReader(url), local_reference)
 
 
-# A driver that writes slowly (0.7 s a case), so that the kill lands between two chains it has flushed
+# A driver that writes slowly (1.4 s a chain), so that the kill lands between two chains it has flushed
 SLOW_DRIVER = """
 import sys, time
 import orchestrator.sweep as sweep
 from storage.store import PairStore
-real = PairStore.write_pair
+real = PairStore.write_pairs
 def slow(self, *args, **kwargs):
-    time.sleep(0.7)
+    time.sleep(1.4)
     return real(self, *args, **kwargs)
-PairStore.write_pair = slow
+PairStore.write_pairs = slow
 sweep.FLUSH_INTERVAL_S = 0.0
 sys.argv = ["heartctl", *sys.argv[1:]]
 from cli import main
@@ -337,41 +337,42 @@ def test_wrong_credentials_are_one_line(s3, iam_checks, monkeypatch, tmp_path):
 
 
 def test_server_stopped_mid_sweep_then_rerun_resumes(s3, local_reference, monkeypatch):
-    """The server goes away between the two chunks of the third case (after two flushed cases): one
-    line, exit 1; the cases marked done read back intact, the half-written one is not done; once the
-    server is back the same command finishes the store."""
+    """The server goes away between the two shards of the second chain (after one written chain of
+    two cases): one line, exit 1; the cases marked done read back intact, the half-written ones are not
+    done; once the server is back the same command finishes the store."""
     import orchestrator.sweep as sweep
+    from storage.store import _write_rows
 
     url = _url("stopped/pairs.zarr")
     monkeypatch.setattr(sweep, "FLUSH_INTERVAL_S", 0.0)  # the case table written after every chain
-    real_write, calls = PairStore.write_pair, []
+    real_write, calls = PairStore.write_pairs, []
 
-    def server_goes_away(self, s, k, unloaded, loaded, stats):
-        calls.append(k)
-        if len(calls) == 3:
-            handle = self._handle(s)
-            handle["unloaded"][k] = np.asarray(unloaded, dtype=np.float32)  # the first chunk lands
+    def server_goes_away(self, s, pairs):
+        calls.append(sorted(pairs))
+        if len(calls) == 2:
+            block = np.stack([np.asarray(pairs[k][0], dtype=np.float32) for k in calls[-1]])
+            _write_rows(self._handle(s)["unloaded"], calls[-1], block)  # the unloaded shard lands
             s3.stop()
-        return real_write(self, s, k, unloaded, loaded, stats)
+        return real_write(self, s, pairs)
 
-    monkeypatch.setattr(PairStore, "write_pair", server_goes_away)
+    monkeypatch.setattr(PairStore, "write_pairs", server_goes_away)
     try:
         r = runner.invoke(app, ARGS + ["--store", url])
     finally:
-        if len(calls) >= 3:
+        if len(calls) >= 2:
             s3.restart()
     _assert_one_line(r, 1, f"lost the object store while writing {url}", s3.endpoint, "does not answer",
                      "rerun the same command")
-    half = calls[2]
-    monkeypatch.setattr(PairStore, "write_pair", real_write)
+    half = calls[1]
+    monkeypatch.setattr(PairStore, "write_pairs", real_write)
     _fresh_filesystems()
 
     r = runner.invoke(app, ["status", "--store", url, "--verify", "--json"])
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout.strip().splitlines()[-1])["done"] == 2
     reader = PairReader(url)
-    assert reader.status(0)[half] == PENDING and sorted(k for _, k in reader.done_cases()) == sorted(calls[:2])
-    assert np.isfinite(reader._shape(0)["unloaded"][half]).all()  # its first chunk was written: still not done
+    assert (reader.status(0)[half] == PENDING).all() and sorted(k for _, k in reader.done_cases()) == calls[0]
+    assert np.isfinite(reader._shape(0)["unloaded"].oindex[half]).all()  # in the unloaded shard: still not done
 
     r = runner.invoke(app, ARGS + ["--store", url])
     assert r.exit_code == 0, r.output

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from cli import app
 from storage.meshfiles import write_mesh
 from trainer.checkpoint import load_run
-from trainer_fixtures import lv_mesh, make_tiny_store
+from trainer_fixtures import flip_byte, lv_mesh, make_tiny_store
 
 runner = CliRunner()
 
@@ -748,10 +748,7 @@ def test_a_flipped_bit_in_a_stored_case_is_found_on_every_read(trained, tmp_path
     train refuse in one line naming shape and case, and status --verify lists it (exit 1)."""
     store = tmp_path / "flipped.zarr"
     shutil.copytree(trained["store"], store)
-    chunk = store / "shapes" / "0" / "unloaded" / "c" / "1" / "0" / "0"
-    data = bytearray(chunk.read_bytes())
-    data[len(data) // 2] ^= 0x10
-    chunk.write_bytes(bytes(data))
+    flip_byte(store, 0, "unloaded", 1, bit=0x10)  # inside case 1's chunk of the shape's shard
     assert_bad_input(run("export", "--store", store, "--shape", 0, "--case", 1, "-o", tmp_path / "c.vtu"),
                      "shape 0 case 1 is damaged", "checksum")
     assert not (tmp_path / "c.vtu").exists()

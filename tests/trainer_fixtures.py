@@ -66,11 +66,38 @@ def make_tiny_store(path, shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0),
     for s in range(shapes):
         m = lv_mesh(s, seed)
         store.write_shape(s, m.nodes, m.tets, m.endo, m.epi, m.base, np.zeros(3), {})
-        for k, (p, c, _, _) in enumerate(params):
-            unloaded = synthetic_unloaded(m.nodes, p, c) + [shift_mm, 0.0, 0.0]
-            stats = {"min_jacobian": 0.9, "roundtrip_error_mm": 1e-6, "final_residual": 1e-9}
-            reason = store.write_pair(s, k, unloaded, m.nodes, stats)
+        stats = {"min_jacobian": 0.9, "roundtrip_error_mm": 1e-6, "final_residual": 1e-9}
+        pairs = {k: (synthetic_unloaded(m.nodes, p, c) + [shift_mm, 0.0, 0.0], m.nodes, stats)
+                 for k, (p, c, _, _) in enumerate(params)}
+        for k, reason in store.write_pairs(s, pairs).items():  # the shape's shard written once
             assert reason is None, reason
             store.set_case(s, k, DONE, stats_row({**stats, "run": 0}))
     store.flush()
     return str(path)
+
+
+def case_chunk(store, shape_id: int, name: str, k: int) -> tuple[Path, int, int]:
+    """(file, offset, length) of the stored bytes of case k of a local store's case array `name`
+    (unloaded or loaded): its inner chunk in the shape's shard (the shard index at the file's end: an
+    (offset, length) uint64 pair per case, then a CRC-32C), or its own chunk file in a version 1 store."""
+    import zarr
+
+    array = zarr.open_group(str(store), mode="r")[f"shapes/{shape_id}/{name}"]
+    folder = Path(store) / "shapes" / str(shape_id) / name / "c"
+    if array.shards is None:
+        path = folder / str(k) / "0" / "0"
+        return path, 0, path.stat().st_size
+    path = folder / str(k // array.shards[0]) / "0" / "0"
+    per_shard = array.shards[0]
+    data = path.read_bytes()
+    index = np.frombuffer(data[len(data) - 16 * per_shard - 4:-4], dtype="<u8").reshape(per_shard, 2)
+    offset, length = index[k % per_shard]
+    return path, int(offset), int(length)
+
+
+def flip_byte(store, shape_id: int, name: str, k: int, where: float = 0.5, bit: int = 0x01) -> None:
+    """Change one bit in the stored bytes of case k (at `where` of its chunk's length)."""
+    path, offset, length = case_chunk(store, shape_id, name, k)
+    data = bytearray(path.read_bytes())
+    data[offset + int(length * where)] ^= bit
+    path.write_bytes(bytes(data))
