@@ -117,16 +117,19 @@ def test_mesh_hierarchies_parse_and_bad_ones_are_refused():
         ConvergenceSpec(shapes=("round",)).validate()
 
 
-def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny):
+def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny, one_level):
     params = CASES["mid"]
     pair = make_pair(tiny, params, "reference")
-    direct = inverse_solve(refine_uniform(tiny, 1), params, "accurate")
     assert pair.unloaded_nodes.shape == tiny.nodes.shape
-    assert np.abs(pair.unloaded_nodes - direct.unloaded_nodes[: tiny.n_nodes]).max() < 1e-3
     assert np.linalg.norm(pair.loaded_nodes - tiny.nodes, axis=1).max() < 1e-3
-    # and it differs from accurate on the mesh as given by that mesh's discretisation error
+    # accurate on the mesh as given is as far from it as from the inverse on the refined mesh that
+    # bench convergence solved (one_level: accurate's level-1 answer is its reference): the pair is
+    # that refined solve, at the ED nodes
     coarse = inverse_solve(tiny, params, "accurate")
-    assert nodal_error(coarse.unloaded_nodes, pair.unloaded_nodes, tiny.nodes)["mean_mm"] > 0.01
+    gap = nodal_error(coarse.unloaded_nodes, pair.unloaded_nodes, tiny.nodes)
+    level0 = next(r for r in one_level["rows"] if r["preset"] == "accurate" and r["level"] == 0)
+    assert gap["mean_mm"] > 0.01  # the mesh's own discretisation error
+    assert abs(gap["mean_mm"] - level0["mean_mm"]) < 2e-3 and abs(gap["max_mm"] - level0["max_mm"]) < 5e-3
     fwd = forward_solve(tiny.with_nodes(pair.unloaded_nodes), params, "reference")
     assert fwd.loaded_nodes.shape == tiny.nodes.shape
     inv = inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes)
