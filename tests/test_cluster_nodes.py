@@ -17,7 +17,7 @@ import torch
 ray = pytest.importorskip("ray")
 
 from orchestrator.grid import SweepSpec  # noqa: E402
-from orchestrator.ray_session import init_ray  # noqa: E402
+from orchestrator.ray_session import WORKER_NICENESS, init_ray  # noqa: E402
 from process_tree import processes_titled  # noqa: E402
 from orchestrator.sweep import run_sweep  # noqa: E402
 from storage.store import DONE, PairReader  # noqa: E402
@@ -38,7 +38,7 @@ def cluster():
     before = recorded.read_bytes() if recorded.is_file() else None
     env_before = {k: os.environ.get(k) for k in LOCAL_RAY_TRAIN_ENV}
     os.environ.update(LOCAL_RAY_TRAIN_ENV)  # the nodes' processes inherit the local Ray's Ray Train settings
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1})
+    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "_system_config": {"worker_niceness": WORKER_NICENESS}})
     c.add_node(num_cpus=1)
     c.wait_for_nodes()
     init_ray(address=c.address)

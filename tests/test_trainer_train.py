@@ -372,10 +372,11 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
 
 def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
     ray = pytest.importorskip("ray")
+    from orchestrator.ray_session import RayAddress, start_or_join
     from trainer.ray_train import local_ray_options, serves_state_api, train_with_ray
 
     run = tmp_path / "ray_run"
-    ray.init(address="local", log_to_driver=False, **local_ray_options(2))  # a new Ray, as heartctl starts one
+    start_or_join(RayAddress(), log_to_driver=False, **local_ray_options(2))  # a new Ray, as heartctl starts one
     try:
         assert not serves_state_api()  # so the runs below go without the placement-group cleaner
         s = train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=2, max_failures=0)
@@ -470,13 +471,15 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_autoscaling_client():
 
 def test_local_ray_environment_names_ray_trains_own_flags():
     """The local Ray's environment names the flags Ray Train reads (a renamed flag would bring back the
-    preemption watcher's error line, or the 2 s checks, in every local training run)."""
+    preemption watcher's error line, or the 2 s checks, or the 60 s start timeout, in every local training run)."""
     pytest.importorskip("ray")
-    from ray.train.v2._internal.constants import ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR
+    from ray.train.v2._internal.constants import (ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR,
+                                                  WORKER_GROUP_START_TIMEOUT_S_ENV_VAR)
 
     from trainer.ray_train import LOCAL_RAY_TRAIN_ENV
 
-    assert set(LOCAL_RAY_TRAIN_ENV) == {ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR}
+    assert set(LOCAL_RAY_TRAIN_ENV) == {ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR,
+                                        WORKER_GROUP_START_TIMEOUT_S_ENV_VAR}
     assert LOCAL_RAY_TRAIN_ENV[ENABLE_PREEMPTION_WATCHER_ENV_VAR] == "0"
 
 
