@@ -711,6 +711,9 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
           max_failures: int = typer.Option(2, "--max-failures", help="Restarts from the last checkpoint after a worker dies."),
           lr: float = typer.Option(1e-3, "--lr", help="AdamW learning rate."),
           patience: int = typer.Option(50, "--patience", help="Early stopping: epochs without a better validation loss."),
+          init_from: Path = typer.Option(None, "--init-from", help="Fine-tune: start from this run directory's (or "
+                                         "checkpoint's) weights and normalisation, with a fresh optimiser and schedule; "
+                                         "give the configuration it was trained with."),
           bf16: bool = typer.Option(False, "--bf16", help="bf16 autocast (GPU only)."),
           compile_model: bool = typer.Option(False, "--compile", help="torch.compile the training step (GPU; "
                                              "a few minutes to compile, then faster steps)."),
@@ -729,7 +732,8 @@ def train(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs
                                dict(scale_pct=scale_pct, lr_schedule=lr_schedule, split=split, sr=sr,
                                     train_fraction=train_fraction, labelled_share=labelled_share, seed=seed,
                                     split_seed=split_seed, label_seed=label_seed, rotate_deg=rotate_deg, epochs=epochs,
-                                    batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model))
+                                    batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model,
+                                    init_from=None if init_from is None else str(init_from)))
     except _trainer_errors() as exc:
         fail(str(exc))
     if placement.in_process(cfg):

@@ -759,3 +759,47 @@ def test_a_flipped_bit_in_a_stored_case_is_found_on_every_read(trained, tmp_path
     assert r.exit_code == 1 and "damaged: shape 0 case 1: its checksum does not match" in r.output, r.output
     r = run("status", "--store", trained["store"], "--verify")
     assert r.exit_code == 0 and "read back intact" in r.output, r.output
+
+
+def test_fine_tuning_starts_from_the_parents_weights_and_records_it(trained, tmp_path):
+    """--init-from: the first epoch (at a learning rate too small to move the weights) validates at the
+    parent's validation loss, not at a fresh network's; config.json and the checkpoint record the
+    parent's file and digest and keep its normalisation; a rerun resumes only with the same parent."""
+    parent = load_run(trained["run"])
+    common = ("--store", trained["store"], "--no-ray", "--device", "cpu", "--batch-size", 8, "--lr", 1e-9)
+
+    def first_val_loss(run_dir):
+        return float((run_dir / "metrics.csv").read_text().splitlines()[1].split(",")[4])
+
+    ft, scratch = tmp_path / "ft", tmp_path / "scratch"
+    r = run("train", *common, "--run-dir", ft, "--epochs", 1, "--init-from", trained["run"])
+    assert r.exit_code == 0, r.output
+    assert "starting from" in r.output and "fresh optimiser" in r.output
+    assert run("train", *common, "--run-dir", scratch, "--epochs", 1).exit_code == 0
+    assert first_val_loss(ft) == pytest.approx(parent["best_val"], rel=1e-4)
+    assert abs(first_val_loss(scratch) - parent["best_val"]) > 100 * abs(first_val_loss(ft) - parent["best_val"])
+    config = json.loads((ft / "config.json").read_text())
+    assert config["init_from"] == str((trained["run"] / "checkpoint.pt").resolve())
+    assert config["init_from_sha256"] == parent["tensors_sha256"]
+    child = load_run(ft)
+    assert child["normalisation"] == parent["normalisation"] and child["optimizer"]["state"]
+    assert child["train_config"]["init_from_sha256"] == parent["tensors_sha256"]
+    r = run("train", *common, "--run-dir", ft, "--epochs", 2, "--init-from", trained["run"] / "checkpoint.pt")
+    assert r.exit_code == 0 and "resuming" in r.output, r.output
+    assert_bad_input(run("train", *common, "--run-dir", ft, "--epochs", 3), "init_from_sha256")
+
+
+def test_fine_tuning_refuses_another_network_or_a_damaged_parent(trained, tmp_path):
+    common = ("train", "--store", trained["store"], "--no-ray", "--run-dir", tmp_path / "ft", "--epochs", 1)
+    assert_bad_input(run(*common, "--init-from", trained["run"], "--config", "A1"),
+                     "--init-from", "holds the network paper", "this command trains A1")
+    damaged = tmp_path / "damaged"
+    shutil.copytree(trained["run"], damaged)
+    state = torch.load(damaged / "checkpoint.pt", map_location="cpu", weights_only=True)
+    name = next(k for k, v in state["best_model"].items() if v.is_floating_point() and v.numel())
+    state["best_model"][name].reshape(-1)[0] += 1.0
+    torch.save(state, damaged / "checkpoint.pt")
+    assert_bad_input(run(*common, "--init-from", damaged), "do not match the digest")
+    assert_bad_input(run(*common, "--init-from", tmp_path / "nowhere"), "--init-from", "no checkpoint at")
+    assert_bad_input(run(*common, "--init-from", trained["run"], "--config", "pca"), "--init-from", "PCA")
+    assert not (tmp_path / "ft").exists()

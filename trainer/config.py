@@ -397,6 +397,8 @@ class TrainConfig:
     compile: bool = False  # torch.compile the training forward/backward (dynamic shapes; minutes to compile)
     checkpoint_every: int = 1
     num_threads: int = 0  # torch threads per process (0: leave as is)
+    init_from: str | None = None  # fine-tuning: the parent checkpoint whose weights and normalisation the run starts from
+    init_from_sha256: str | None = None  # the parent's tensors digest, recorded when the run starts (trainer.finetune)
 
     def __post_init__(self):
         if not 0 < self.sr <= 1:
@@ -431,6 +433,13 @@ class TrainConfig:
             raise TrainerError(f"weight_decay must be a finite number ≥ 0, got {self.weight_decay}")
         if self.lr_patience < 0 or not 0 < self.lr_factor < 1:
             raise TrainerError(f"lr_patience must be ≥ 0 and lr_factor in (0, 1), got {self.lr_patience} and {self.lr_factor}")
+        if self.init_from is not None and not str(self.init_from).strip():
+            raise TrainerError("--init-from takes a run directory or its checkpoint.pt")
+        if self.init_from is not None and self.model.kind == "pca":
+            raise TrainerError("--init-from starts a network from trained weights; the PCA baseline is fitted in one step")
+        if self.init_from_sha256 is not None and (self.init_from is None or len(self.init_from_sha256) != 64
+                                                  or any(c not in "0123456789abcdef" for c in self.init_from_sha256)):
+            raise TrainerError("init_from_sha256 must be the parent checkpoint's 64-digit hex digest, with init_from set")
 
     @property
     def data_seed(self) -> int:
@@ -477,13 +486,15 @@ class TrainConfig:
                  "labelled_share": self.labelled_share, "weight_decay": self.weight_decay}
         if self.labels_seed != self.data_seed:  # runs from before --label-seed keep their identity
             ident["label_seed"] = self.labels_seed
+        if self.init_from is not None:  # the parent's weights, wherever its file lies (runs without one keep their identity)
+            ident["init_from_sha256"] = self.init_from_sha256
         return ident
 
 
 # the training fields a configuration line shows when they differ from their defaults (what is learned
 # and how; not epochs' budget, precision or threads)
 _SHOWN_TRAINING = ("split", "sr", "labelled_share", "train_fraction", "rotate_deg", "scale_pct", "seed", "split_seed",
-                   "label_seed", "batch_size", "lr", "lr_schedule", *SET_TRAIN_KEYS)
+                   "label_seed", "batch_size", "lr", "lr_schedule", *SET_TRAIN_KEYS, "init_from")
 
 
 def describe_run(cfg: TrainConfig) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -14,6 +15,9 @@ from storage.store import PARAM_NAMES, PairReader, reading_store
 
 from .config import TrainerError
 from .splits import make_split, subsample_shapes, supervised_subset
+
+if TYPE_CHECKING:
+    from .finetune import Parent
 
 N_REGIONS = 6  # base / mid / apex × endo / epi half of the wall
 TET_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
@@ -385,6 +389,7 @@ class DataBundle:
     labelled: set
     fingerprint: dict
     cases: StoreCases = field(repr=False, default=None)
+    parent: Parent | None = field(repr=False, default=None)  # the checkpoint a fine-tuning run starts from
 
 
 def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: set | None = None,
@@ -399,11 +404,12 @@ def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: s
 
 def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 1.0,
                         cases: StoreCases | None = None, train_fraction: float = 1.0,
-                        response: bool = False, label_seed: int | None = None) -> DataBundle:
+                        response: bool = False, label_seed: int | None = None,
+                        norm: Normalisation | None = None) -> DataBundle:
     """Read the store, split it, keep `train_fraction` of the training shapes (learning curves),
     withhold labels outside the SR subset, fit the normalisation on the training split (ED
-    coordinates of every training case; displacements of labelled ones). `label_seed` draws the SR
-    subset (default: `seed`, which draws the split)."""
+    coordinates of every training case; displacements of labelled ones), or use `norm` (fine-tuning
+    keeps its parent's). `label_seed` draws the SR subset (default: `seed`, which draws the split)."""
     cases = cases or read_store(store)
     if not cases.params:
         raise TrainerError(f"store {store} has no done cases to train on")
@@ -412,8 +418,9 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
     labelled = supervised_subset(parts["train"], sr, seed if label_seed is None else label_seed)
     train_ed = [placed_nodes(cases.ed(k), cases.features[k[0]].base_nodes) for k in parts["train"]]
     train_lab = [k for k in parts["train"] if k in labelled]
-    norm = Normalisation.fit(train_ed, [cases.displacement(k) for k in train_lab], cases.attrs["grid"],
-                             [cases.params[k] for k in train_lab])
+    if norm is None:
+        norm = Normalisation.fit(train_ed, [cases.displacement(k) for k in train_lab], cases.attrs["grid"],
+                                 [cases.params[k] for k in train_lab])
     return DataBundle(build_graphs(cases, parts["train"], norm, labelled, response),
                       build_graphs(cases, parts["val"], norm, response=response),
                       build_graphs(cases, parts["test"], norm, response=response), norm, parts, labelled,
@@ -422,6 +429,14 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
 
 def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:
     """build_training_data for a TrainConfig (store, split, seed, SR, training-shape fraction; the
-    linear response on the graphs when the model takes it)."""
-    return build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction,
-                               cfg.model.uses_response, cfg.labels_seed)
+    linear response on the graphs when the model takes it; with init_from, the parent checkpoint's
+    normalisation and the parent itself on the bundle)."""
+    parent = None
+    if cfg.init_from is not None:
+        from .finetune import load_parent  # (finetune imports this module)
+
+        parent = load_parent(cfg)
+    bundle = build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction,
+                                 cfg.model.uses_response, cfg.labels_seed, None if parent is None else parent.norm)
+    bundle.parent = parent
+    return bundle

@@ -53,12 +53,14 @@ def prepare_training(store: str, run_dir: Path, placement: Placement, config: st
     keywords) and `run_options` (TrainConfig's fields; scale_pct, lr_schedule and epochs None for the
     preset's or the default), after every check that can be made before training starts: the split,
     the store, a writable run directory, a checkpoint there of the same run that can be resumed, and
-    the CUDA devices asked for."""
+    the CUDA devices asked for; with `init_from` (fine-tuning), the parent checkpoint checked and
+    recorded (trainer.finetune.with_parent)."""
     from storage.store import StoreError, inspect_store, is_url
 
     from .checkpoint import load_checkpoint, run_checkpoint_path
     from .config import compose, describe_model
     from .data import check_split, training_data
+    from .finetune import with_parent
     from .loop import check_resumable, check_same_run
     from .splits import parse_split
 
@@ -77,6 +79,8 @@ def prepare_training(store: str, run_dir: Path, placement: Placement, config: st
     cfg = TrainConfig(store=store, config_name=describe_model(model), model=model, **options, **preset_options)
     if inspect_store(store) is None:
         raise StoreError(f"no heartctl store at {store}")
+    if cfg.init_from is not None:
+        cfg = with_parent(cfg)
     nearest = next(p for p in (run_dir, *run_dir.parents) if p.exists())  # made with its parents when training starts
     if not nearest.is_dir():
         raise TrainerError(f"--run-dir {run_dir}: {nearest} is a file")

@@ -294,6 +294,15 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
                 group["lr"] = cfg.lr
             if dist.is_main:
                 dist.log(f"--lr {cfg.lr:g} (the run started at {saved_lr:g}): the rate restarts at {cfg.lr:g}")
+    elif bundle.parent is not None:  # fine-tuning: the parent's weights, a fresh optimiser and schedule
+        try:
+            model.load_state_dict(bundle.parent.weights)
+        except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+            raise TrainerError(f"--init-from {bundle.parent.path}: its weights do not load into this network "
+                               f"({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__})") from None
+        if dist.is_main:
+            dist.log(f"starting from {bundle.parent.describe()}: its weights and normalisation, a fresh optimiser "
+                     f"and learning-rate schedule")
     model.to(dist.device)
     average = WeightAverage(model, cfg.model.ema_decay) if cfg.model.ema_decay > 0 else None
     if average is not None and state is not None:
