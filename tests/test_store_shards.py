@@ -175,14 +175,21 @@ class Dying(io.FileIO):
         self.flush()
         os.kill(os.getpid(), signal.SIGKILL)
 
-real_open = io.open
+real_open, real_path_open = io.open, pathlib.Path.open
+def writes_the_shard(file, mode):
+    return any(c in mode for c in "wa+") and "/shapes/0/unloaded/c/" in str(file)
 def dying_open(file, mode="r", *args, **kwargs):
-    if "w" in mode and "/shapes/0/unloaded/c/" in str(file):
-        return Dying(file, "w")
+    if writes_the_shard(file, mode):
+        return Dying(file, mode.replace("b", "").replace("t", "") or "w")
     return real_open(file, mode, *args, **kwargs)
+def dying_path_open(path, mode="r", *args, **kwargs):
+    if writes_the_shard(path, mode):
+        return dying_open(path, mode)
+    return real_path_open(path, mode, *args, **kwargs)
 
 store = PairStore.open({location!r})
 io.open = builtins.open = dying_open
+pathlib.Path.open = dying_path_open
 store.write_pairs(0, _pairs(store, [1, 3, 5]))
 print("survived")
 """
