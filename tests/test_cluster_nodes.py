@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import threading
+from contextlib import contextmanager
 from pathlib import Path
 from dataclasses import replace
 
@@ -80,6 +81,34 @@ def _epochs_logged(run) -> int:
     return max(0, len(path.read_text().splitlines()) - 1) if path.is_file() else 0
 
 
+@contextmanager
+def _node_killed_when(cluster, pick):
+    """While the block runs, a thread calls pick() every 20 ms; the first time it returns (node, note)
+    the node is killed (no graceful shutdown). Yields a list that then holds the note, or the
+    thread's error."""
+    killed, stop = [], threading.Event()
+
+    def watch():
+        try:
+            while not stop.is_set():
+                hit = pick()
+                if hit is not None:
+                    cluster.remove_node(hit[0], allow_graceful=False)
+                    killed.append(hit[1])
+                    return
+                stop.wait(0.02)
+        except Exception as exc:  # noqa: BLE001 - reported by the test
+            killed.append(exc)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        yield killed
+    finally:
+        stop.set()
+        watcher.join(timeout=60)
+
+
 def _sweep_spec() -> SweepSpec:
     # four chains of three pairs on ~150-node meshes: each node has a chain in flight for most of the run
     return SweepSpec(shapes=1, pressure_mmhg=(6.0, 10.0, 14.0), stiffness_pa=(50.0, 100.0, 200.0, 300.0),
@@ -88,28 +117,14 @@ def _sweep_spec() -> SweepSpec:
 
 def test_a_node_lost_mid_sweep_every_case_done_once_and_intact(cluster, tmp_path):
     spec = _sweep_spec()
-    killed, stop = [], threading.Event()
 
-    def kill_when_busy():  # the driver records a shape's cases in batches: watch the node, not the events
-        try:
-            while not stop.is_set():
-                node = _worker_node(cluster)
-                if _busy_on(node):  # the worker node is in the middle of a pressure chain
-                    cluster.remove_node(node, allow_graceful=False)
-                    killed.append(node)
-                    return
-                stop.wait(0.02)
-        except Exception as exc:  # noqa: BLE001 - reported by the test
-            killed.append(exc)
+    def busy_worker_node():  # the driver records a shape's cases in batches: watch the node, not the events
+        node = _worker_node(cluster)
+        return (node, node) if _busy_on(node) else None  # in the middle of a pressure chain
 
-    watcher = threading.Thread(target=kill_when_busy, daemon=True)
-    watcher.start()
     lost = str(tmp_path / "lost.zarr")
-    try:
+    with _node_killed_when(cluster, busy_worker_node) as killed:
         rep = run_sweep(spec, lost, progress=False)
-    finally:
-        stop.set()
-        watcher.join(timeout=60)
     assert killed and not isinstance(killed[0], Exception), f"the worker node never had a pair in flight {killed}"
     assert rep.done == spec.n_cases and rep.failed == 0 and rep.lost == 0
     assert sorted(k for _, k, _ in rep.records) == list(range(spec.n_cases))  # each case recorded once
@@ -139,31 +154,17 @@ def test_ray_train_loses_a_node_and_resumes_from_its_last_checkpoint(cluster, tm
     train_with_ray(cfg, tmp_path / "whole", gpus=0, cpu_workers=2, max_failures=0)
 
     run = tmp_path / "lost"
-    stop = threading.Event()
-    killed = []
 
-    def kill_after_first_checkpoint():
-        try:
-            while not stop.is_set():
-                ray_dir = run / "ray"
-                if ray_dir.is_dir() and any(p.name.startswith("checkpoint_") for p in ray_dir.iterdir()):
-                    hosts = [n for n in cluster.worker_nodes if _busy_on(n, b"ray::RayTrainWorker")]
-                    if hosts:  # a node running one of the two training workers
-                        done = _epochs_logged(run)  # epochs finished when the node died
-                        cluster.remove_node(hosts[0], allow_graceful=False)
-                        killed.append(done)
-                        return
-                stop.wait(0.05)
-        except Exception as exc:  # noqa: BLE001 - reported by the test
-            killed.append(exc)
+    def a_training_node_after_the_first_checkpoint():
+        ray_dir = run / "ray"
+        if ray_dir.is_dir() and any(p.name.startswith("checkpoint_") for p in ray_dir.iterdir()):
+            hosts = [n for n in cluster.worker_nodes if _busy_on(n, b"ray::RayTrainWorker")]
+            if hosts:  # a node running one of the two training workers, and the epochs finished then
+                return hosts[0], _epochs_logged(run)
+        return None
 
-    watcher = threading.Thread(target=kill_after_first_checkpoint, daemon=True)
-    watcher.start()
-    try:
+    with _node_killed_when(cluster, a_training_node_after_the_first_checkpoint) as killed:
         summary = train_with_ray(cfg, run, gpus=0, cpu_workers=2, max_failures=2)
-    finally:
-        stop.set()
-        watcher.join(timeout=60)
     assert killed and not isinstance(killed[0], Exception), killed
     assert killed[0] < cfg.epochs, f"the node died after the run's last epoch ({killed})"
     assert summary["epoch"] == cfg.epochs
