@@ -13,7 +13,6 @@ from pathlib import Path
 from .checkpoint import (CHECKPOINT_NAME, check_resume_parts, load_checkpoint, remove_stale_temporaries,
                          run_checkpoint_path, save_checkpoint)
 from .config import TrainConfig, TrainerError, TrainingDiverged
-from .loop import Dist, best_val_md, fit, pick_resume_state, write_metrics_csv
 
 # A refusal that every rank reaches alike (the training loss diverged in the same epoch; the store
 # cannot be read or split on some worker) is told to the driver by a reported marker checkpoint (one
@@ -186,6 +185,9 @@ def _train_worker(config: dict) -> None:
     import ray.train.torch
     import torch
 
+    from .loop import Dist, fit, pick_resume_state  # here, not at the top: Ray Train's controller imports
+    # this module to unpickle the function, and needs neither the loop nor PyG (~1.7 s on a busy core)
+
     ctx = ray.train.get_context()
     rank, world = ctx.get_world_rank(), ctx.get_world_size()
     device = ray.train.torch.get_device()
@@ -253,6 +255,8 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     import ray
     from ray.train import CheckpointConfig, FailureConfig, RunConfig, ScalingConfig, TrainingFailedError
     from ray.train.torch import TorchConfig, TorchTrainer
+
+    from .loop import best_val_md, pick_resume_state, write_metrics_csv
 
     if gpus < 0 or cpu_workers < 1:
         raise TrainerError("--gpus must be ≥ 0 and the CPU worker count ≥ 1")
