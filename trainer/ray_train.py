@@ -34,7 +34,7 @@ LOCAL_RAY_NOISY_LOGGERS = ("ray.train.v2._internal.execution.scaling_policy.auto
 # start and its end waits one check, seconds in a short local run, and a check is a few local calls.
 # And it waits up to 10 min, not 60 s, for the worker group to start: on a busy laptop two workers
 # importing torch can take over a minute, and a timeout only kills them and starts the same again
-# (Ray retries it without limit), which made a 10 s run take minutes.
+# (Ray retries it without limit), which turns a 10 s run into minutes.
 LOCAL_RAY_TRAIN_ENV = {"RAY_TRAIN_ENABLE_PREEMPTION_WATCHER": "0", "RAY_TRAIN_HEALTH_CHECK_INTERVAL_S": "0.25",
                        "RAY_TRAIN_WORKER_GROUP_START_TIMEOUT_S": "600"}
 
