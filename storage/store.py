@@ -616,6 +616,21 @@ class PairStore:
             else:
                 reasons[k] = f"invalid result: {reason}"
         ks = sorted(valid)
+        try:
+            self._write_and_read_back(h, ks, valid, reasons)
+        except ValueError as exc:  # a shard whose index is damaged cannot be rewritten in part
+            if not (self.sharded and _is_checksum_error(exc)):
+                raise
+            if (self.table(shape_id).status == DONE).any():
+                raise StoreError(f"{self.location}: shape {shape_id}: the index of its case shard is damaged; "
+                                 f"{RECOMPUTE_HINT}") from None
+            self._drop_cases(shape_id)  # no done case in it: nothing a reader may see
+            self._write_and_read_back(h, ks, valid, reasons)
+        return {k: reasons.get(k) for k in pairs}
+
+    @staticmethod
+    def _write_and_read_back(h: dict, ks: list, valid: dict, reasons: dict) -> None:
+        """Both arrays' rows ks written, read back, and a reason noted for any that differ."""
         for i, name in enumerate(("unloaded", "loaded") if ks else ()):
             block = np.stack([np.asarray(valid[k][i], dtype=COORD_DTYPE) for k in ks])
             _write_rows(h[name], ks, block)
@@ -623,7 +638,6 @@ class PairStore:
             for j, k in enumerate(ks):
                 if k not in reasons and not np.array_equal(back[j], block[j]):
                     reasons[k] = f"read-back of {name} differs from what was written"
-        return {k: reasons.get(k) for k in pairs}
 
     def set_case(self, shape_id: int, k: int, status: int, stats_row: np.ndarray, host: str | None = None,
                  reason: str | None = None) -> None:

@@ -131,6 +131,29 @@ def test_a_damaged_shard_index_fails_every_case_and_is_recomputed(tmp_path):
     assert PairReader(store.location).damaged() == []
 
 
+def test_a_damaged_index_in_a_shard_without_done_cases_is_rewritten_and_with_them_named(tmp_path):
+    """Cases written but not yet marked done (a driver killed between the write and the status
+    flush), then the shard's index damaged: the next write drops the shard and writes afresh; with a
+    done case in it, one line naming the shape and the way to recompute it."""
+    store = _empty_store(tmp_path / "s.zarr")
+    store.write_pairs(0, _pairs(store, range(6)))  # none marked done
+    shard = case_chunk(store.location, 0, "unloaded", 0)[0]
+    data = bytearray(shard.read_bytes())
+    data[-10] ^= 0x04  # inside the index
+    shard.write_bytes(bytes(data))
+
+    again = PairStore.open(store.location)
+    assert again.write_pairs(0, _pairs(again, [1, 3])) == {1: None, 3: None}
+    _mark_done(again, [1, 3])
+    assert PairReader(store.location).damaged() == []
+
+    data = bytearray(shard.read_bytes())
+    data[-10] ^= 0x04
+    shard.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match=r"shape 0: the index of its case shard is damaged; .*--retry-damaged"):
+        PairStore.open(store.location).write_pairs(0, _pairs(again, [0]))
+
+
 def _version_1(path) -> PairStore:
     """A store as schema version 1 makes it: a chunk per case, no case_layout attribute."""
     store = PairStore.create(str(path), {**tiny_spec(1).store_attrs(), "schema_version": 1})
