@@ -18,7 +18,8 @@ from orchestrator.plan import store_objects
 from orchestrator.sweep import HeldResults
 from storage.store import (CHUNK_PER_CASE, DONE, PENDING, PairReader, PairStore, StoreError, inspect_store,
                            read_cases, stats_row)
-from trainer_fixtures import case_chunk, flip_byte, lv_mesh, make_tiny_store, synthetic_unloaded, tiny_spec
+from trainer_fixtures import (case_chunk, flip_byte, flip_index_byte, lv_mesh, make_tiny_store, synthetic_unloaded,
+                              tiny_spec)
 
 ROOT = Path(__file__).resolve().parents[1]
 STATS = {"min_jacobian": 0.9, "roundtrip_error_mm": 1e-6, "final_residual": 1e-9}
@@ -119,9 +120,7 @@ def test_a_damaged_shard_index_fails_every_case_and_is_recomputed(tmp_path):
     store.write_pairs(0, _pairs(store, range(6)))
     _mark_done(store, range(6))
     shard = case_chunk(store.location, 0, "unloaded", 0)[0]
-    data = bytearray(shard.read_bytes())
-    data[-10] ^= 0x04  # inside the index
-    shard.write_bytes(bytes(data))
+    flip_index_byte(store.location, 0)
 
     assert [k for _, k, _ in PairReader(store.location).damaged()] == list(range(6))
     again = PairStore.open(store.location)
@@ -137,19 +136,14 @@ def test_a_damaged_index_in_a_shard_without_done_cases_is_rewritten_and_with_the
     done case in it, one line naming the shape and the way to recompute it."""
     store = _empty_store(tmp_path / "s.zarr")
     store.write_pairs(0, _pairs(store, range(6)))  # none marked done
-    shard = case_chunk(store.location, 0, "unloaded", 0)[0]
-    data = bytearray(shard.read_bytes())
-    data[-10] ^= 0x04  # inside the index
-    shard.write_bytes(bytes(data))
+    flip_index_byte(store.location, 0)
 
     again = PairStore.open(store.location)
     assert again.write_pairs(0, _pairs(again, [1, 3])) == {1: None, 3: None}
     _mark_done(again, [1, 3])
     assert PairReader(store.location).damaged() == []
 
-    data = bytearray(shard.read_bytes())
-    data[-10] ^= 0x04
-    shard.write_bytes(bytes(data))
+    flip_index_byte(store.location, 0)
     with pytest.raises(StoreError, match=r"shape 0: the index of its case shard is damaged; .*--retry-damaged"):
         PairStore.open(store.location).write_pairs(0, _pairs(again, [0]))
 

@@ -90,9 +90,20 @@ def case_chunk(store, shape_id: int, name: str, k: int) -> tuple[Path, int, int]
     path = folder / str(k // array.shards[0]) / "0" / "0"
     per_shard = array.shards[0]
     data = path.read_bytes()
-    index = np.frombuffer(data[len(data) - 16 * per_shard - 4:-4], dtype="<u8").reshape(per_shard, 2)
+    from storage.store import SHARD_INDEX_BYTES_PER_CASE
+
+    index_bytes = SHARD_INDEX_BYTES_PER_CASE * per_shard
+    index = np.frombuffer(data[len(data) - index_bytes - 4:-4], dtype="<u8").reshape(per_shard, 2)
     offset, length = index[k % per_shard]
     return path, int(offset), int(length)
+
+
+def flip_index_byte(store, shape_id: int, name: str = "unloaded") -> None:
+    """Change one bit in the index at the end of a shape's shard of the case array `name` (local store)."""
+    path = case_chunk(store, shape_id, name, 0)[0]
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0x04  # inside the last case's (offset, length), before the index's CRC-32C
+    path.write_bytes(bytes(data))
 
 
 def flip_byte(store, shape_id: int, name: str, k: int, where: float = 0.5, bit: int = 0x01) -> None:
