@@ -206,14 +206,17 @@ def start_or_join(where: RayAddress, join_options: dict | None = None, **start_o
 @contextmanager
 def ray_session(where: RayAddress, join_options: dict | None = None, **start_options):
     """Ray for the block: started or joined as start_or_join does, and shut down on leaving it,
-    however the block ends (a result, an error, Ctrl-C)."""
+    however the block ends (a result, an error, Ctrl-C). A local Ray this process already ran is
+    used and left running: it is its starter's to stop (a notebook's, a caller's)."""
     import ray
 
+    ours = bool(where.address) or not ray.is_initialized()
     start_or_join(where, join_options, **start_options)
     try:
         yield
     finally:
-        ray.shutdown()
+        if ours:
+            ray.shutdown()
 
 
 # --------------------------------------------------------------------------- the sweep's Ray

@@ -26,6 +26,7 @@ from trainer.checkpoint import load_run  # noqa: E402
 from trainer.config import PAPER, TrainConfig  # noqa: E402
 from trainer.ray_train import LOCAL_RAY_TRAIN_ENV  # noqa: E402
 from trainer_fixtures import make_tiny_store  # noqa: E402
+from local_ray import stop_local_ray  # noqa: E402
 
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
 
@@ -35,6 +36,7 @@ def cluster():
     """A head node and a worker node of one CPU each, this process the driver (joined by address)."""
     from ray.cluster_utils import Cluster
 
+    stop_local_ray()  # this process joins the two-node cluster instead
     recorded = Path("/tmp/ray/ray_current_cluster")  # where Ray notes the latest cluster for address "auto"
     before = recorded.read_bytes() if recorded.is_file() else None
     env_before = {k: os.environ.get(k) for k in LOCAL_RAY_TRAIN_ENV}

@@ -13,6 +13,7 @@ import pytest
 from typer.testing import CliRunner
 
 from cli import app
+from local_ray import stop_local_ray
 from orchestrator.ray_session import RayConnectError, join_ray
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,6 +34,12 @@ def silent_port():
     server.listen(16)
     yield server.getsockname()[1]
     server.close()
+
+
+@pytest.fixture(autouse=True, scope="module")
+def no_ray_in_this_process():
+    """Each command joins (or fails to join) as a new process would: not a Ray an earlier test left running."""
+    stop_local_ray()
 
 
 GENERATE = ["generate", "--shapes", "1", "--pressures", "8", "--stiffness", "150", "--fidelity", "fast"]

@@ -18,7 +18,7 @@ def test_cpus_used_counts_workers_per_node_up_to_its_cpus():
     assert cpus_used({("gone", 1), ("gone", 2)}, nodes) == (2.0, 1)
 
 
-def test_one_chain_on_a_two_cpu_ray_reports_one_cpu(tmp_path):
+def test_one_chain_on_a_two_cpu_ray_reports_one_cpu(tmp_path, local_ray):
     """One pressure chain is one task: one worker solved it, though Ray had two CPUs."""
     r = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--shapes", "1", "--pressures",
                                  "8,10", "--stiffness", "150", "--endo", "60", "--epi=-60", "--fidelity", "fast",

@@ -14,7 +14,7 @@ ARGS = ["generate", "--shapes", "1", "--pressures", "8,10,12", "--stiffness", "1
         "--fidelity", "fast", "--nodes", "200", "--num-cpus", "1"]
 
 
-def test_disk_full_is_one_line_and_the_rerun_resumes(tmp_path, monkeypatch):
+def test_disk_full_is_one_line_and_the_rerun_resumes(tmp_path, monkeypatch, local_ray):
     store = str(tmp_path / "s.zarr")
     real_write = PairStore.write_pairs
     calls = []
@@ -41,7 +41,7 @@ def test_disk_full_is_one_line_and_the_rerun_resumes(tmp_path, monkeypatch):
     assert len(reader.done_cases()) == 6 and not reader.damaged()
 
 
-def test_a_quota_reached_is_a_full_disk_too(tmp_path, monkeypatch):
+def test_a_quota_reached_is_a_full_disk_too(tmp_path, monkeypatch, local_ray):
     """EDQUOT, raised from inside another exception (as a library may wrap it), counts as full."""
     store = str(tmp_path / "q.zarr")
 

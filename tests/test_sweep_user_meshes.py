@@ -9,7 +9,7 @@ from storage.meshfiles import write_mesh
 from storage.store import PairReader
 
 
-def test_generate_from_user_meshes_in_cm_and_resume(tmp_path):
+def test_generate_from_user_meshes_in_cm_and_resume(tmp_path, local_ray):
     folder = tmp_path / "meshes"
     folder.mkdir()
     originals = [mesh_lv(lv_shape(i), 150) for i in range(2)]

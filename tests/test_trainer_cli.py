@@ -196,11 +196,13 @@ def test_mismatched_store(trained):
     (("--no-ray", "--lr", "inf"), ("--lr",)),
     (("--workers", "999"), ("--workers 999", "CPUs")),  # Ray Train would wait for them for ever
 ])
-def test_train_bad_inputs(trained, tmp_path, args, words):
+def test_train_bad_inputs(trained, tmp_path, args, words, request):
     import torch
 
     if "--gpus" in args and torch.cuda.is_available():
         pytest.skip("this host has a GPU")
+    if "--no-ray" not in args:
+        request.getfixturevalue("local_ray")  # the tests' shared local Ray, not one of its own
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "r", *args), *words)
     assert not (tmp_path / "r").exists()
 

@@ -370,38 +370,32 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     assert chosen.mean_distance_mm(cases.features, cases.params, val_disp, norm) == pytest.approx(min(grid_md))
 
 
-def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path):
-    ray = pytest.importorskip("ray")
-    from orchestrator.ray_session import RayAddress, start_or_join
-    from trainer.ray_train import local_ray_options, serves_state_api, train_with_ray
+def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path, local_ray):
+    from trainer.ray_train import serves_state_api, train_with_ray
 
     run = tmp_path / "ray_run"
-    start_or_join(RayAddress(), log_to_driver=False, **local_ray_options(2))  # a new Ray, as heartctl starts one
-    try:
-        assert not serves_state_api()  # so the runs below go without the placement-group cleaner
-        s = train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=2, max_failures=0)
-        assert s["epoch"] == 2 and s["workers"] == 2 and s["backend"] == "gloo"
-        state = load_run(run)
-        assert state["epoch"] == 2 and len(state["history"]) == 2
-        assert any(p.name.startswith("checkpoint_") for p in (run / "ray").iterdir())
-        # a diverging epoch: the driver gets the one-line error (not Ray's retried worker failure), the run
-        # directory keeps epoch 2, and a rerun at a sane rate resumes from it past Ray's divergence marker
-        with pytest.raises(TrainerError, match="diverged in epoch 3"):
-            train_with_ray(_cfg(store, epochs=5, lr=1e12), run, gpus=0, cpu_workers=2, max_failures=2)
-        assert load_run(run)["epoch"] == 2
-        s = train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=2, max_failures=0)
-        assert s["epoch"] == 3 and load_run(run)["epoch"] == 3
-        assert [h["epoch"] for h in load_run(run)["history"]] == [1, 2, 3]  # epochs 1–2 came from the checkpoint
-        # a rerun with nothing left to train reports nothing: Ray's restored marker is not a new divergence
-        assert train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=2, max_failures=0)["epoch"] == 3
-        # a store the workers cannot read (the driver's checks passed, e.g. a path on the driver's own disk):
-        # one line naming the worker, not Ray's failure retried --max-failures times
-        with pytest.raises(TrainerError, match=r"missing\.zarr.*\(Ray worker 0 on "):
-            train_with_ray(_cfg(str(tmp_path / "missing.zarr")), tmp_path / "ray_missing", gpus=0, cpu_workers=2,
-                           max_failures=2)
-        assert not (tmp_path / "ray_missing").exists()  # nothing to resume from: Ray's storage is not left behind
-    finally:
-        ray.shutdown()
+    assert not serves_state_api()  # so the runs below go without the placement-group cleaner
+    s = train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=2, max_failures=0)
+    assert s["epoch"] == 2 and s["workers"] == 2 and s["backend"] == "gloo"
+    state = load_run(run)
+    assert state["epoch"] == 2 and len(state["history"]) == 2
+    assert any(p.name.startswith("checkpoint_") for p in (run / "ray").iterdir())
+    # a diverging epoch: the driver gets the one-line error (not Ray's retried worker failure), the run
+    # directory keeps epoch 2, and a rerun at a sane rate resumes from it past Ray's divergence marker
+    with pytest.raises(TrainerError, match="diverged in epoch 3"):
+        train_with_ray(_cfg(store, epochs=5, lr=1e12), run, gpus=0, cpu_workers=2, max_failures=2)
+    assert load_run(run)["epoch"] == 2
+    s = train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=2, max_failures=0)
+    assert s["epoch"] == 3 and load_run(run)["epoch"] == 3
+    assert [h["epoch"] for h in load_run(run)["history"]] == [1, 2, 3]  # epochs 1–2 came from the checkpoint
+    # a rerun with nothing left to train reports nothing: Ray's restored marker is not a new divergence
+    assert train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=2, max_failures=0)["epoch"] == 3
+    # a store the workers cannot read (the driver's checks passed, e.g. a path on the driver's own disk):
+    # one line naming the worker, not Ray's failure retried --max-failures times
+    with pytest.raises(TrainerError, match=r"missing\.zarr.*\(Ray worker 0 on "):
+        train_with_ray(_cfg(str(tmp_path / "missing.zarr")), tmp_path / "ray_missing", gpus=0, cpu_workers=2,
+                       max_failures=2)
+    assert not (tmp_path / "ray_missing").exists()  # nothing to resume from: Ray's storage is not left behind
 
 
 def _refusal_rank(rank: int, world: int, rendezvous: str, out) -> None:
