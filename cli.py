@@ -1112,7 +1112,7 @@ def _store_errors():
 
 
 @app.command()
-def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes (default 60, the paper's; or the store's)."),
+def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes (default 60, the paper's; or the store's). More than an existing store's grows it by the shape model's next shapes, its done cases kept; fewer is refused."),
              store: str = typer.Option(..., "--store", help="Zarr store: a path or an fsspec URL (s3://…)."),
              pressures: str = typer.Option(None, "--pressures", help="ED pressures, mmHg, comma-separated (default 4,6,…,14)."),
              stiffness: str = typer.Option(None, "--stiffness", help="Stiffness C, Pa, comma-separated (default 50,100,…,300)."),
@@ -1136,7 +1136,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              warm_start: bool = typer.Option(True, "--warm-start/--no-warm-start", help="Start each inverse from the unloaded geometry of its chain's lower pressures (default) or from the ED mesh."),
              as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
     """Generate FE pairs (inverse + forward) over shapes × P × C × θendo × θepi into a Zarr store, on Ray.
-    Rerunning on the same store resumes it."""
+    Rerunning on the same store resumes it; a larger --shapes grows it."""
     from orchestrator.ray_session import RayAddress
     from orchestrator.sweep_request import SweepRequest, resolve_sweep
     from solver.mesh import MeshError
@@ -1249,7 +1249,9 @@ def _print_plan(plan: dict, as_json: bool) -> None:
     g = plan["grid"]
     axes = " × ".join(f"{len(g[a])} {n}" for a, n in (("pressure_mmhg", "P"), ("stiffness_pa", "C"),
                                                       ("helix_endo_deg", "θendo"), ("helix_epi_deg", "θepi")))
-    typer.echo(f"plan for {plan['store']} ({'resume' if plan['resume'] else 'new store'}): {plan['shapes']} shapes × "
+    how = ("new store" if not plan["resume"] else "resume" if plan.get("grows_from") is None else
+           f"resume, growing the store from {plan['grows_from']} shapes")
+    typer.echo(f"plan for {plan['store']} ({how}): {plan['shapes']} shapes × "
                f"{axes} = {plan['cases']} cases; {plan['done']} done, {plan['failed']} failed, {plan['to_run']} to run")
     typer.echo(f"fidelity {plan['fidelity']}, seed {plan['seed']}, ~{plan['mesh_nodes']} nodes per mesh")
     cal = plan.get("calibration")

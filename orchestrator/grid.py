@@ -97,6 +97,11 @@ class SweepSpec:
 
     # ---- store attributes
 
+    def grows(self, attrs: dict) -> int | None:
+        """The store's shape count when this request raises it (a resume that grows the store), else None."""
+        stored = int(attrs["grid"]["shapes"])
+        return stored if self.shapes > stored else None
+
     def grid_attrs(self) -> dict:
         return {"shapes": self.shapes, **{a: list(getattr(self, a)) for a in AXES}}
 
@@ -134,13 +139,14 @@ class SweepSpec:
                    mesh_units=attrs.get("mesh_units", "mm"))
 
     def conflicts(self, attrs: dict) -> list[str]:
-        """How this request differs from the store's (empty: it may resume that store)."""
+        """How this request differs from the store's (empty: it may resume that store). More shapes
+        than the store's is no conflict: the store grows by the shape model's next members."""
         stored = SweepSpec.from_attrs(attrs)
         out = []
         if not np.array_equal(np.asarray(attrs.get("case_params"), dtype=float).reshape(-1, 4), stored.case_params()):
             out.append("the store's case_params do not follow its grid (edited by hand?); it cannot be resumed")
-        if stored.shapes != self.shapes:
-            out.append(f"--shapes {self.shapes} (store has {stored.shapes})")
+        if self.shapes < stored.shapes:  # a larger count grows the store (PairStore.grow_shapes)
+            out.append(f"--shapes {self.shapes} (store has {stored.shapes}; shrinking a store is not supported)")
         for a in AXES:
             if not np.array_equal(np.asarray(getattr(stored, a)), np.asarray(getattr(self, a))):
                 out.append(f"{AXIS_FLAGS[a]} {_fmt(getattr(self, a))} (store has {_fmt(getattr(stored, a))})")

@@ -24,16 +24,18 @@ def store_objects(shapes: int, cases_per_shape: int, sharded: bool = True) -> in
 
 
 def existing_counts(location: str, spec: SweepSpec) -> dict:
+    """Done and failed cases of the store's shapes, and how many of the spec's shapes are meshed."""
     try:
         reader = PairReader(location)
     except Exception:
-        return {"done": 0, "failed": 0}
-    done = failed = 0
+        return {"done": 0, "failed": 0, "meshed": 0}
+    done = failed = meshed = 0
     for s in reader.shape_ids():
         st = reader.status(s)
         done += int((st == DONE).sum())
         failed += int((st == FAILED).sum())
-    return {"done": done, "failed": failed}
+        meshed += int(s < spec.shapes)
+    return {"done": done, "failed": failed, "meshed": meshed}
 
 
 def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
@@ -68,10 +70,12 @@ def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
 
 def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: int | None = None,
               calibration: bool = True, warm_start: bool = True, retry_failed: bool = False) -> dict:
-    counts = existing_counts(location, spec) if store_attrs is not None else {"done": 0, "failed": 0}
+    counts = existing_counts(location, spec) if store_attrs is not None else {"done": 0, "failed": 0, "meshed": 0}
     remaining = spec.n_cases - counts["done"] - (0 if retry_failed else counts["failed"])
+    to_mesh = spec.shapes - counts["meshed"]
     plan = {
         "store": str(location), "resume": store_attrs is not None, "shapes": spec.shapes,
+        "grows_from": spec.grows(store_attrs) if store_attrs is not None else None, "shapes_to_mesh": to_mesh,
         "cases_per_shape": spec.cases_per_shape, "cases": spec.n_cases, "done": counts["done"],
         "failed": counts["failed"], "to_run": remaining, "fidelity": spec.fidelity, "seed": spec.seed,
         "mesh_nodes": spec.nodes, "grid": spec.grid_attrs(),
@@ -81,7 +85,7 @@ def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: i
     if calibration:
         cal = calibrate(spec, warm_start)
         plan["calibration"] = cal
-        core_s = remaining * cal["pair_s"] + (0 if store_attrs is not None else spec.shapes * cal["mesh_s"])
+        core_s = remaining * cal["pair_s"] + to_mesh * cal["mesh_s"]
         plan["core_hours"] = core_s / 3600
         if cores:
             plan["cores"] = cores

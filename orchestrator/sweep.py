@@ -8,7 +8,8 @@ Failures: a lost worker or node is retried by Ray (`max_retries`), after which t
 pending for the next run (failed once that has happened to a case in MAX_LOSSES runs); a solver failure (or any exception a case's solve raises) is retried once
 inside the task with a more robust setting, then recorded as failed with its reason. The
 sweep never stops for one case. Resume: cases already done (or failed, unless retry_failed) are
-never resubmitted.
+never resubmitted. A resume with more shapes than the store's grows it: the count is raised in the
+store's attributes, and the added shapes are meshed and solved like any pending shape.
 """
 from __future__ import annotations
 
@@ -142,10 +143,14 @@ def check_request(spec: SweepSpec, location: str, for_writing: bool = True) -> d
     if attrs is not None:
         conflicts = spec.conflicts(attrs)
         if conflicts:
-            raise SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
-                                f"use the store's settings to resume, or a new --store")
+            raise _conflict(location, conflicts)
         _check_shape_tables(location, np.asarray(attrs["case_params"], dtype=float))
     return attrs
+
+
+def _conflict(location: str, conflicts: list[str]) -> SweepConflict:
+    return SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
+                         f"use the store's settings to resume, or a new --store")
 
 
 def _check_shape_tables(location: str, case_params: np.ndarray) -> None:
@@ -254,7 +259,11 @@ def open_or_create(spec: SweepSpec, location: str) -> tuple[PairStore, WriterLoc
         # got the lock: check again under it
         if attrs is None and check_request(spec, location, for_writing=False) is None:
             return PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()}), lock
-        return PairStore.open(location), lock
+        store = PairStore.open(location)
+        conflicts = spec.conflicts(store.attrs)  # again under the lock: another driver may have grown it since
+        if conflicts:
+            raise _conflict(location, conflicts)
+        return store, lock
     except BaseException:
         lock.release()
         _remove_if_only_lock(folder if made else None)
@@ -321,10 +330,14 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
     counts_before = _count(store, spec.shapes)
     report = SweepReport(total=spec.n_cases, done_before=counts_before[DONE], failed_before=counts_before[FAILED],
                          cpus=cpus)
+    grows_from = spec.grows(store.attrs)
     run = store.begin_run({"host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus,
                            "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": limit.value,
                            "done_before": report.done_before, "failed_before": report.failed_before,
-                           "warm_start": warm_start})
+                           "warm_start": warm_start, "shapes": spec.shapes,
+                           **({"shapes_before": grows_from} if grows_from is not None else {})})
+    if grows_from is not None:  # the added shapes are pending: phase 1 meshes them, phase 2 solves them
+        store.grow_shapes(spec.shapes)
     report.run = run
     mesh_remote, chain_remote = _remotes()
     kept_failed = 0 if retry_failed else report.failed_before

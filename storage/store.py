@@ -506,6 +506,21 @@ class PairStore:
         self.root.attrs.update(_jsonable(values))
         self.attrs.update(_jsonable(values))
 
+    @property
+    def shapes(self) -> int:
+        """The store's shape count (the root attr grid["shapes"]): its shapes are 0 … shapes − 1."""
+        return int(self.attrs["grid"]["shapes"])
+
+    def grow_shapes(self, shapes: int) -> None:
+        """Raise the shape count to `shapes`; the shapes added are pending until a sweep meshes them
+        (write_shape, in the store's own case layout) and solves their cases. Done cases stay as they
+        are. StoreError for a count below the store's: a store does not shrink."""
+        if shapes < self.shapes:
+            raise StoreError(f"{self.location} has {self.shapes} shapes; shrinking a store to {shapes} is not "
+                             f"supported")
+        if shapes > self.shapes:
+            self.update_attrs(grid={**self.attrs["grid"], "shapes": int(shapes)})
+
     # ---- runs (audit trail)
 
     def begin_run(self, info: dict) -> int:

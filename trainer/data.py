@@ -366,13 +366,31 @@ def fingerprint_value(fingerprint: dict, name: str):
     return fingerprint.get(name, "laplace" if name == "fibres" else None)
 
 
-def check_fingerprint(saved: dict, now: dict, location) -> None:
+def grown_shapes(saved: dict, now: dict) -> tuple[int, int] | None:
+    """(shapes then, shapes now) when the store of fingerprint `now` is the one of `saved` grown by
+    more shapes (`heartctl generate` with a larger --shapes: the same grid otherwise), else None."""
+    was, grid = saved.get("grid"), now.get("grid")
+    if not (isinstance(was, dict) and isinstance(grid, dict) and "shapes" in was and "shapes" in grid):
+        return None
+    same = {k: v for k, v in was.items() if k != "shapes"} == {k: v for k, v in grid.items() if k != "shapes"}
+    return (int(was["shapes"]), int(grid["shapes"])) if same and int(grid["shapes"]) > int(was["shapes"]) else None
+
+
+def check_fingerprint(saved: dict, now: dict, location, grown_ok: bool = False) -> None:
     """Raise TrainerError (one line) when the store whose store_fingerprint is `now` is not the one
-    the run (fingerprint `saved`) was trained on."""
+    the run (fingerprint `saved`) was trained on. A store grown by more shapes since (grown_shapes)
+    is refused too, as a changed store (a run resumes only on the cases it started with), unless
+    `grown_ok`: evaluation, whose cases are the run's own, stored unchanged in the grown store."""
+    grown = grown_shapes(saved, now)
     for name in ("grid", "fidelity", "seed", "base", "fibres"):
+        if name == "grid" and grown is not None:
+            continue
         if fingerprint_value(saved, name) != now.get(name):
             raise TrainerError(f"store {location} does not match the run: {name} is {now.get(name)!r}, "
                                f"the run was trained on {saved.get(name)!r}")
+    if grown is not None and not grown_ok:
+        raise TrainerError(f"store {location} changed since the run started: it grew from {grown[0]} to {grown[1]} "
+                           f"shapes; train on the grown store with a new --run-dir")
     for s, n in now["shape_nodes"].items():
         if s in saved.get("shape_nodes", {}) and saved["shape_nodes"][s] != n:
             raise TrainerError(f"store {location} does not match the run: shape {s} has {n} nodes, "

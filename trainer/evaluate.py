@@ -63,7 +63,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
                + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else ""))
     cases = read_store(store, keys)
     if keys is not None:
-        check_fingerprint(state["fingerprint"], store_fingerprint(cases.attrs, cases.features), store)
+        check_fingerprint(state["fingerprint"], store_fingerprint(cases.attrs, cases.features), store, grown_ok=True)
         missing = [k for k in keys if k not in cases.params]
         if missing:
             raise TrainerError(f"store {store} lacks {len(missing)} of the run's {len(keys)} {split} cases "
