@@ -1,6 +1,6 @@
 """A store grows with a larger --shapes: the count raised in its attributes, the added shapes meshed
 and solved in the store's own layout (a shard per shape, or a version 1 store's chunk per case), the
-done cases left byte for byte; a smaller --shapes is refused. One two-CPU Ray for the module; coarse
+done cases left byte for byte; a smaller --shapes is refused. The tests' shared two-CPU Ray (conftest.py); coarse
 meshes (~200 nodes), the fast preset, two cases a shape."""
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from typer.testing import CliRunner
 
 from orchestrator.grid import SweepSpec
 from orchestrator.plan import make_plan
-from orchestrator.ray_session import init_ray
 from orchestrator.sweep import run_sweep
 from storage.store import DONE, PairReader, PairStore, StoreError, case_layout, inspect_store, summarize
 
@@ -28,13 +27,9 @@ def spec(shapes: int) -> SweepSpec:
                      helix_epi_deg=(-60.0,), fidelity="fast", seed=0, nodes=200).validate()
 
 
-@pytest.fixture(scope="module")
-def ray_cluster():
-    import ray
-
-    ctx = init_ray(num_cpus=2, local=True)
-    yield ctx.address_info["gcs_address"]
-    ray.shutdown()
+@pytest.fixture
+def ray_cluster(local_ray):
+    return local_ray
 
 
 def _snapshot(path: Path) -> dict:
