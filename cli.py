@@ -760,7 +760,8 @@ def _train_on_ray(cfg, run_dir: Path, placement, where) -> dict:
     """Ray Train within a ray_session (a local Ray, or the cluster joined): refusals, Ray that will not
     start and Ctrl-C exit 2 (130) in one line, a training that fails exits 1."""
     from orchestrator.ray_session import RayConnectError, RayStartError, ray_session
-    from trainer.ray_train import check_ray_resources, local_ray_options, train_with_ray
+    from trainer.ray_local import local_ray_options
+    from trainer.ray_train import check_ray_resources, train_with_ray
 
     gpus, workers = placement.gpus, placement.workers
     try:

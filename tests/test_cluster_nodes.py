@@ -24,7 +24,7 @@ from orchestrator.sweep import run_sweep  # noqa: E402
 from storage.store import DONE, PairReader  # noqa: E402
 from trainer.checkpoint import load_run  # noqa: E402
 from trainer.config import PAPER, TrainConfig  # noqa: E402
-from trainer.ray_train import LOCAL_RAY_TRAIN_ENV  # noqa: E402
+from trainer.ray_local import LOCAL_RAY_TRAIN_ENV  # noqa: E402
 from trainer_fixtures import make_tiny_store  # noqa: E402
 from local_ray import stop_local_ray  # noqa: E402
 

@@ -443,7 +443,7 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_autoscaling_client():
     import logging
     import logging.config
 
-    from trainer.ray_train import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
+    from trainer.ray_local import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
 
     module, name = NO_DASHBOARD_SETUP_HOOK.rsplit(".", 1)
     hook = getattr(importlib.import_module(module), name)
@@ -470,7 +470,7 @@ def test_local_ray_environment_names_ray_trains_own_flags():
     from ray.train.v2._internal.constants import (ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR,
                                                   WORKER_GROUP_START_TIMEOUT_S_ENV_VAR)
 
-    from trainer.ray_train import LOCAL_RAY_TRAIN_ENV
+    from trainer.ray_local import LOCAL_RAY_TRAIN_ENV
 
     assert set(LOCAL_RAY_TRAIN_ENV) == {ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR,
                                         WORKER_GROUP_START_TIMEOUT_S_ENV_VAR}
