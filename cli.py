@@ -496,14 +496,16 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
 @bench_app.command("trade")
 def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory of a trained network; repeat it to add "
                                                                     "their ensemble as a method."),
-                shapes: int = typer.Option(2, "--shapes", help="Held-out shapes (the shape model's ids after the run's last)."),
+                shapes: int = typer.Option(2, "--shapes", help="Held-out shapes (the shape model's ids after the run's last, or from --first-shape)."),
                 cases: int = typer.Option(3, "--cases", help="Cases per mesh: the mid of the run's box, then its corners, hardest first (1–5)."),
                 user_nodes: int = typer.Option(800, "--user-nodes", help="Second mesh size, as users bring (0: the training resolution only)."),
                 out: Path = typer.Option(None, "--out", help="Report folder (default RUN/trade: where unload --method auto looks); "
                                                              "solves/ there keeps the reference solves, so a rerun resumes."),
                 threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver."),
                 network_only: bool = typer.Option(False, "--network-only", help="Score the network (and the ensemble) "
-                                                  "alone: no FE or hybrid methods.")):
+                                                  "alone: no FE or hybrid methods."),
+                first_shape: int = typer.Option(None, "--first-shape", help="First held-out shape id (default: the one "
+                                                "after the run's last); the same for runs trained on different stores.")):
     """The speed–accuracy trade: held-out ED meshes unloaded by FE (fast, accurate), the network, and the
     network's guess refined by 1, 2, 4 inverse updates or to tolerance, each against the converged
     solution (the reference preset). Writes trade.md, trade.png and trade.json (read by --method auto)."""
@@ -512,7 +514,8 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
 
     out = out or run[0] / "trade"
     try:
-        spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes, network_only=network_only).validate()
+        spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes, network_only=network_only,
+                         first_shape=first_shape).validate()
         result = run_trade(spec, out / "solves", progress=typer.echo)
     except _trainer_errors() as exc:
         fail(str(exc))

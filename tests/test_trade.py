@@ -87,6 +87,11 @@ def test_box_cases_mid_then_hardest_corner():
                           TradeSpec(("r",), shapes=2, cases=2, user_nodes=800))
     assert {c.shape_id for c in held} == {4, 5} and {c.seed for c in held} == {2}  # unseen ids, same model
     assert {c.target_nodes for c in held} == {350, 800} and len(held) == 2 * 2 * 2
+    later = held_out_cases({"grid": grid, "shape_nodes": {"0": 300, "3": 310}, "mesh_nodes": 350, "seed": 2},
+                           TradeSpec(("r",), shapes=2, cases=1, user_nodes=0, first_shape=20))
+    assert [c.shape_id for c in later] == [20, 21]  # the held-out shapes of a run on a larger store
+    with pytest.raises(TrainerError, match="--first-shape 3: the run's store holds shapes 0–3"):
+        held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350}, TradeSpec(("r",), first_shape=3))
 
 
 def _table(rows):

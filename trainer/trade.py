@@ -41,7 +41,8 @@ class TradeSpec:
     of the run's parameter box, then its corners, hardest first; user_nodes: the second mesh size
     (0: the training resolution only); hybrid_updates: the budgets of the network-guess hybrids;
     check_preset: the preset of the a-posteriori re-inflation; network_only: score the network (and
-    its ensemble) alone, no FE or hybrid methods."""
+    its ensemble) alone, no FE or hybrid methods; first_shape: the first held-out shape id (None: the
+    one after the run's last; runs trained on different stores are then scored on the same shapes)."""
 
     runs: tuple[str, ...]
     shapes: int = 2
@@ -50,6 +51,7 @@ class TradeSpec:
     hybrid_updates: tuple[int, ...] = (1, 2, 4)
     check_preset: str = "accurate"
     network_only: bool = False
+    first_shape: int | None = None
 
     def validate(self) -> "TradeSpec":
         if not self.runs:
@@ -60,6 +62,8 @@ class TradeSpec:
             raise ValueError(f"--cases must be 1–5 (the mid case and up to 4 corners), got {self.cases}")
         if self.user_nodes and not 150 <= self.user_nodes <= 5000:
             raise ValueError(f"--user-nodes must be 0 or 150–5000, got {self.user_nodes}")
+        if self.first_shape is not None and self.first_shape < 0:
+            raise ValueError(f"--first-shape must be ≥ 0, got {self.first_shape}")
         if any(k < 1 for k in self.hybrid_updates):
             raise ValueError("hybrid update budgets must be ≥ 1")
         return self
@@ -109,6 +113,11 @@ def held_out_cases(fingerprint: dict, spec: TradeSpec) -> list[HeldOutCase]:
                            "store made by heartctl generate")
     seen = [int(s) for s in fingerprint.get("shape_nodes", {})] or [int(grid.get("shapes", 1)) - 1]
     first = max(max(seen) + 1, int(grid.get("shapes", 0)))
+    if spec.first_shape is not None:
+        if spec.first_shape < first:
+            raise TrainerError(f"--first-shape {spec.first_shape}: the run's store holds shapes 0–{first - 1} of this "
+                               f"seed; held-out shapes start at {first} or later")
+        first = spec.first_shape
     nodes = fingerprint.get("mesh_nodes") or int(np.mean(list(fingerprint["shape_nodes"].values())))
     sizes = [("training", int(nodes))] + ([("user", spec.user_nodes)] if spec.user_nodes else [])
     seed = int(fingerprint.get("seed") or 0)
