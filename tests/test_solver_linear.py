@@ -30,12 +30,13 @@ def _laplacian_3d(n: int) -> sp.csr_matrix:
                     reason="needs pypardiso and Linux /proc")
 @pytest.mark.parametrize("release", ["dropped", "context"])
 def test_pardiso_memory_is_released(release):
-    """Twelve solvers, each factorising an 8,000-unknown Laplacian (~14 MB of MKL memory) and then
-    dropped (or closed by `with`): the process must not grow by their factorisations."""
+    """Eight solvers, each factorising an 8,000-unknown Laplacian (~14 MB of MKL memory) and then
+    dropped (or closed by `with`): the process must not grow by their factorisations (a leak: ~84 MB
+    over the last six)."""
     A = _laplacian_3d(20)
     b = np.ones(A.shape[0])
     sizes = []
-    for _ in range(12):
+    for _ in range(8):
         if release == "context":
             with SparseSolver("pardiso") as s:
                 x = s.solve(A, b)
@@ -46,7 +47,7 @@ def test_pardiso_memory_is_released(release):
         gc.collect()
         sizes.append(_anonymous_rss_mb())
     assert np.allclose(A @ x, b)
-    assert sizes[-1] - sizes[1] < 40, f"anonymous memory grew {sizes[-1] - sizes[1]:.0f} MB over 10 solvers"
+    assert sizes[-1] - sizes[1] < 40, f"anonymous memory grew {sizes[-1] - sizes[1]:.0f} MB over 6 solvers"
 
 
 def test_sparsity_pattern_sums_duplicates_and_drops_fixed_dofs():
