@@ -6,10 +6,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,10 +16,10 @@ pytest.importorskip("moto.server", reason="s3:// store tests need moto[server] (
 pytest.importorskip("s3fs", reason="s3:// store tests need s3fs (pip install -e '.[test]')")
 
 from cli import app  # noqa: E402
+from killed_driver import generate_killed_after_first_write  # noqa: E402
 from local_ray import start_local_ray, stop_local_ray  # noqa: E402
 from storage.store import DONE, PENDING, PairReader, PairStore  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
 BUCKET = "heartctl-test"
 # one shape, 3 pressure chains of 2 cases (fast preset, a coarse mesh); one chain in flight at a time
 ARGS = ["generate", "--shapes", "1", "--pressures", "8,12", "--stiffness", "100,200,300", "--endo", "60",
@@ -185,32 +181,11 @@ def test_generate_status_export_through_the_cli(s3, generated, local_reference, 
     _assert_same_pairs(PairReader(url), local_reference)
 
 
-# The driver, killed (SIGKILL) right after it has written and recorded its first chain: mid-sweep by
-# construction, whatever the solver's speed
-KILLED_AFTER_FIRST_WRITE = """
-import os, signal, sys
-import orchestrator.sweep as sweep
-recorded = sweep._record
-def record_then_die(store, *args):
-    out = recorded(store, *args)
-    store.flush()
-    os.kill(os.getpid(), signal.SIGKILL)
-sweep._record = record_then_die
-sys.argv = ["heartctl", *sys.argv[1:]]
-from cli import main
-main()
-"""
-
-
 def test_killed_driver_then_rerun_does_every_case_once(s3, local_reference):
     import ray
 
     url = _url("killed/pairs.zarr")
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    killed = subprocess.run([sys.executable, "-c", KILLED_AFTER_FIRST_WRITE, *ARGS, "--store", url, "--address",
-                             ray.get_runtime_context().gcs_address], cwd=ROOT, env=env, capture_output=True,
-                            text=True, timeout=300)
-    assert killed.returncode == -signal.SIGKILL, killed.stdout[-2000:] + killed.stderr[-2000:]
+    generate_killed_after_first_write(ARGS + ["--store", url], ray.get_runtime_context().gcs_address)
 
     reader = PairReader(url)
     before = {k: reader.stats(0)[k].copy() for _, k in reader.done_cases()}

@@ -6,8 +6,6 @@ import hashlib
 import json
 import os
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,10 +15,10 @@ from typer.testing import CliRunner
 
 from orchestrator.grid import SweepSpec
 from orchestrator.sweep import run_sweep
+from killed_driver import generate_killed_after_first_write
 from process_tree import processes_titled
 from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, inspect_store, summarize
 
-ROOT = Path(__file__).resolve().parents[1]
 COL = {n: i for i, n in enumerate(STAT_NAMES)}
 
 
@@ -124,33 +122,13 @@ def test_killed_worker_sweep_still_finishes(ray_cluster, tmp_path):
         assert np.isfinite(c.unloaded).all() and np.isfinite(c.loaded).all()
 
 
-# The driver of `heartctl generate`, killed (SIGKILL) right after it has written and recorded the first
-# batch of cases: the kill lands mid-sweep by construction, whatever the solver's speed.
-KILLED_AFTER_FIRST_WRITE = """
-import os, signal, sys
-import orchestrator.sweep as sweep
-recorded = sweep._record
-def record_then_die(store, *args):
-    out = recorded(store, *args)
-    store.flush()
-    os.kill(os.getpid(), signal.SIGKILL)
-sweep._record = record_then_die
-from cli import main
-sys.argv = ["heartctl", *sys.argv[1:]]
-main()
-"""
-
-
 def test_driver_killed_then_rerun_finishes(ray_cluster, tmp_path):
     loc = str(tmp_path / "d.zarr")
     # 2 pressure chains of 2 cases, one in flight: the first write holds the first chain's cases
     args = ["generate", "--store", loc, "--shapes", "1", "--pressures", "8,12", "--stiffness", "100,200",
             "--endo", "60", "--epi=-60", "--fidelity", "fast", "--nodes", "200", "--max-in-flight", "1"]
     total = 4
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    killed = subprocess.run([sys.executable, "-c", KILLED_AFTER_FIRST_WRITE, *args, "--address", ray_cluster],
-                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert killed.returncode == -signal.SIGKILL, killed.stdout[-2000:] + killed.stderr[-2000:]
+    generate_killed_after_first_write(args, ray_cluster)
 
     reader = PairReader(loc)  # opens cleanly after the kill
     done_before = {}
