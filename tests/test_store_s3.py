@@ -98,12 +98,11 @@ def s3(tmp_path_factory):
     mp.setenv("AWS_SECRET_ACCESS_KEY", key["SecretAccessKey"])
     _fresh_filesystems()
     boto3.session.Session().client("s3").create_bucket(Bucket=BUCKET)  # a new session: the key just made
-    stop_local_ray()  # the module's Ray: its workers (Ray Train's) inherit the variables above
-    start_local_ray()
+    stop_local_ray()  # the module's Ray: its workers (Ray Train's) inherit the variables above (and keep
+    start_local_ray()  # them for the later tests that share it, whose stores are on local disk)
     try:
         yield server
     finally:
-        stop_local_ray()
         server.stop()
         mp.undo()
         _fresh_filesystems()
