@@ -25,3 +25,7 @@ def test_one_chain_on_a_two_cpu_ray_reports_one_cpu(tmp_path, local_ray):
                                  "--nodes", "200", "--num-cpus", "2"])
     assert r.exit_code == 0, r.output
     assert "pairs" in r.output and "on 1 CPU (the cluster had 2) (" in r.output, r.output
+    import ray
+
+    # the command used the Ray this process already ran and left it running (its starter's to stop)
+    assert ray.is_initialized() and ray.get_runtime_context().gcs_address == local_ray
