@@ -19,6 +19,7 @@ from trainer.loop import Dist, fit
 from trainer.metrics import case_metrics, dsc, hausdorff, nn_mean_distance, nodewise_error
 from trainer.predict import Predictor
 from trainer.schedule import cosine_lr
+from gloo_ranks import refusal_rank
 from trainer_fixtures import make_tiny_store
 
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
@@ -399,22 +400,6 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path, local
     assert not (tmp_path / "ray_missing").exists()  # nothing to resume from: Ray's storage is not left behind
 
 
-def _refusal_rank(rank: int, world: int, rendezvous: str, out) -> None:
-    from datetime import timedelta
-
-    import torch.distributed as tdist
-
-    from trainer.ray_train import agreed_refusal
-
-    tdist.init_process_group("gloo", init_method=f"file://{rendezvous}", rank=rank, world_size=world,
-                             timeout=timedelta(seconds=60))
-    try:
-        own = "cannot read store s.zarr (rank 1)" if rank == 1 else None
-        out.put((rank, agreed_refusal(own, world, torch.device("cpu")), agreed_refusal(None, world, torch.device("cpu"))))
-    finally:
-        tdist.destroy_process_group()
-
-
 def test_a_refusal_on_one_rank_stops_every_rank(tmp_path):
     """Only rank 1 cannot read the store: every rank gets its message (a collective, so rank 0 does not
     wait for ever in DDP's first broadcast), and with no refusal every rank trains."""
@@ -422,7 +407,7 @@ def test_a_refusal_on_one_rank_stops_every_rank(tmp_path):
 
     ctx = mp.get_context("spawn")
     out = ctx.Queue()
-    procs = [ctx.Process(target=_refusal_rank, args=(r, 2, str(tmp_path / "rendezvous"), out), daemon=True)
+    procs = [ctx.Process(target=refusal_rank, args=(r, 2, str(tmp_path / "rendezvous"), out), daemon=True)
              for r in range(2)]
     try:
         for p in procs:
