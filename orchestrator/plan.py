@@ -23,19 +23,19 @@ def store_objects(shapes: int, cases_per_shape: int, sharded: bool = True) -> in
     return shapes * (SHAPE_OBJECTS + 2 * (1 if sharded else cases_per_shape)) + 2
 
 
-def existing_counts(location: str, spec: SweepSpec) -> dict:
-    """Done and failed cases of the store's shapes, and how many of the spec's shapes are meshed."""
+def existing_counts(location: str) -> dict:
+    """Done and failed cases of the store's shapes, and how many shapes it has meshed."""
     try:
         reader = PairReader(location)
     except Exception:
         return {"done": 0, "failed": 0, "meshed": 0}
-    done = failed = meshed = 0
-    for s in reader.shape_ids():
+    done = failed = 0
+    shape_ids = reader.shape_ids()
+    for s in shape_ids:
         st = reader.status(s)
         done += int((st == DONE).sum())
         failed += int((st == FAILED).sum())
-        meshed += int(s < spec.shapes)
-    return {"done": done, "failed": failed, "meshed": meshed}
+    return {"done": done, "failed": failed, "meshed": len(shape_ids)}
 
 
 def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
@@ -70,7 +70,7 @@ def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
 
 def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: int | None = None,
               calibration: bool = True, warm_start: bool = True, retry_failed: bool = False) -> dict:
-    counts = existing_counts(location, spec) if store_attrs is not None else {"done": 0, "failed": 0, "meshed": 0}
+    counts = existing_counts(location) if store_attrs is not None else {"done": 0, "failed": 0, "meshed": 0}
     remaining = spec.n_cases - counts["done"] - (0 if retry_failed else counts["failed"])
     to_mesh = spec.shapes - counts["meshed"]
     plan = {

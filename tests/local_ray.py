@@ -10,21 +10,19 @@ variables in the workers' environment) calls `stop_local_ray()` first.
 from __future__ import annotations
 
 
-def start_local_ray(**env_vars) -> str:
-    """This process's local Ray, started when none runs; its GCS address. `env_vars` are set in its
-    workers' environment (on a Ray started here)."""
+def start_local_ray() -> str:
+    """This process's local Ray, started when none runs (its workers inherit this process's
+    environment as it is then); its GCS address."""
     import ray
 
     from orchestrator.ray_session import RayAddress, start_or_join, sweep_ray_options
     from trainer.ray_local import local_ray_options
 
     if not ray.is_initialized():
-        options = {**sweep_ray_options(2, local=True), **local_ray_options(2)}
-        options.pop("join_options")
-        options["runtime_env"] = {**local_ray_options(2)["runtime_env"],
-                                  "env_vars": {**sweep_ray_options(2, local=True)["runtime_env"]["env_vars"],
-                                               **local_ray_options(2)["runtime_env"]["env_vars"], **env_vars}}
-        start_or_join(RayAddress(), **options)
+        sweep, train = sweep_ray_options(2, local=True), local_ray_options(2)
+        sweep.pop("join_options")
+        env = {**sweep["runtime_env"]["env_vars"], **train["runtime_env"]["env_vars"]}
+        start_or_join(RayAddress(), **{**sweep, **train, "runtime_env": {**train["runtime_env"], "env_vars": env}})
     return ray.get_runtime_context().gcs_address
 
 
