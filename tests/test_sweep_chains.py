@@ -206,3 +206,38 @@ def test_a_workspace_builds_one_problem_and_one_analysis_and_changes_no_answer(m
         alone = make_pair(mesh, params, "fast")
         assert np.abs(pair.unloaded_nodes - alone.unloaded_nodes).max() < 1e-9
         assert np.abs(pair.loaded_nodes - alone.loaded_nodes).max() < 1e-9
+
+
+def test_an_accurate_chain_starts_from_its_neighbours_loaded_states(mesh, monkeypatch):
+    """Each `accurate` inverse of a chain starts from the loaded states of the pairs before it,
+    extrapolated to its pressure (edge midpoints and pressure field included), on the factorisation
+    the workspace holds: the same unloaded geometries to the inverse tolerance with fewer
+    factorisations than a start from straight edges and a zero pressure field. A remembered pair's
+    own pressure gives back its state."""
+    from solver.lv import PairWorkspace, make_pair, unloaded_guess
+    from solver.parameters import CaseParameters
+
+    def chain(use_states: bool):
+        pairs, solved = [], []
+        with PairWorkspace(mesh) as workspace:
+            if not use_states:
+                monkeypatch.setattr(workspace, "loaded_guess", lambda *args: None)
+            for c in CHAIN:
+                params = CaseParameters(*c)
+                pair = make_pair(mesh, params, "accurate", initial_unloaded=unloaded_guess(solved, c[0]),
+                                 workspace=workspace)
+                pairs.append(pair)
+                solved.append((c[0], pair.unloaded_nodes))
+            if use_states:
+                last = pairs[-1]
+                z = workspace.loaded_guess(last.inverse.problem, CHAIN[-1][0], mesh.nodes)
+                np.testing.assert_allclose(z, last.forward.state, rtol=0, atol=2 * tol)
+            return pairs, workspace.linsolve.factorizations
+
+    tol = get_fidelity("accurate").inverse_tol_mm
+    warm, warm_factorizations = chain(True)
+    plain, plain_factorizations = chain(False)
+    for w, p in zip(warm, plain):
+        assert np.linalg.norm(w.unloaded_nodes - p.unloaded_nodes, axis=1).max() < 5 * tol
+        assert w.stats["roundtrip_error_mm"] < 10 * tol
+    assert warm_factorizations < 0.7 * plain_factorizations, (warm_factorizations, plain_factorizations)
