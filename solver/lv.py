@@ -70,7 +70,22 @@ class PairWorkspace:
         self.tets = ed_mesh.tets
         self.linsolve = SparseSolver()
         self._problems: dict[tuple, MechanicsProblem] = {}
-        self._loaded: dict[int, list[tuple[float, np.ndarray]]] = {}  # id(problem) → [(P mmHg, state)]
+        self._solved: dict[tuple, list[tuple[float, np.ndarray, np.ndarray]]] = {}  # key → [(P, X, loaded)]
+        self._refined: tuple[int, TetMesh, PairWorkspace] | None = None
+
+    def refined(self, ed_mesh: TetMesh, levels: int) -> tuple[TetMesh, "PairWorkspace"]:
+        """`refine_uniform(ed_mesh, levels)` and its own workspace, built once: where a preset with
+        `refinement_levels` solves the pairs of this chain."""
+        if self._refined is None or self._refined[0] != levels:
+            if self._refined is not None:
+                self._refined[2].close()
+            fine = refine_uniform(ed_mesh, levels)
+            self._refined = (levels, fine, PairWorkspace(fine))
+        return self._refined[1], self._refined[2]
+
+    @staticmethod
+    def _key(params: CaseParameters, fidelity: Fidelity, base: str, fibres: str) -> tuple:
+        return (fidelity, base, fibres, params.stiffness_pa)
 
     def problem(self, mesh: TetMesh, params: CaseParameters, fidelity: Fidelity, base: str,
                 fibres: str) -> MechanicsProblem:
@@ -79,7 +94,7 @@ class PairWorkspace:
         pairs, P and the helix angles, enter only through the load and the fibres set here)."""
         if mesh.tets is not self.tets and not np.array_equal(mesh.tets, self.tets):
             raise ValueError("a pair workspace serves one mesh topology; this mesh has other tets")
-        key = (fidelity, base, fibres, params.stiffness_pa)
+        key = self._key(params, fidelity, base, fibres)
         problem = self._problems.get(key)
         if problem is None:
             problem = self._problems[key] = lv_problem(mesh, params, fidelity, base, fibres=fibres)
@@ -88,12 +103,19 @@ class PairWorkspace:
         return problem
 
     def remember(self, problem: MechanicsProblem, pressure_mmhg: float, state: np.ndarray) -> None:
-        """Keep a solved pair's final state as the loaded configuration (every displacement dof's
-        position, mm) and the rest of its unknowns (pressure field, gauge multipliers), for
-        `loaded_guess` of the next pair of the same problem."""
+        """Keep a solved pair (`problem` set on its unloaded geometry, `state` its final unknowns): the
+        unloaded geometry, the loaded configuration (every displacement dof's position, mm) and the
+        rest of the unknowns (pressure field, gauge multipliers), for the next pair's `unloaded_guess`
+        and `loaded_guess`."""
+        key = next(k for k, p in self._problems.items() if p is problem)
         u, _ = problem.split(state)
         loaded = np.concatenate([(problem.dofmap.points + u).ravel(), state[problem.n_u:]])
-        self._loaded.setdefault(id(problem), []).append((float(pressure_mmhg), loaded))
+        self._solved.setdefault(key, []).append((float(pressure_mmhg), problem.nodes.copy(), loaded))
+
+    def unloaded_guess(self, params: CaseParameters, fidelity: Fidelity, base: str, fibres: str) -> np.ndarray | None:
+        """`unloaded_guess` from the remembered pairs of this preset, base, fibre rule and stiffness."""
+        solved = [(p, X) for p, X, _ in self._solved.get(self._key(params, fidelity, base, fibres), [])]
+        return _extrapolate_in_pressure(solved, params.pressure_mmhg)
 
     def loaded_guess(self, problem: MechanicsProblem, pressure_mmhg: float, x_ed: np.ndarray) -> np.ndarray | None:
         """A starting state for `problem` (already set on the trial unloaded geometry X) at
@@ -103,7 +125,9 @@ class PairWorkspace:
         (`_state_from_vertices`: straight edges, zero pressure field) is far from equilibrium, this
         one starts with the curved edges and the pressure field of the neighbouring pairs: on an
         800-node `accurate` chain, its first residual was 1e2–1e3× smaller."""
-        extrapolated = _extrapolate_in_pressure(self._loaded.get(id(problem), []), pressure_mmhg)
+        key = next(k for k, p in self._problems.items() if p is problem)
+        solved = [(p, loaded) for p, _, loaded in self._solved.get(key, [])]
+        extrapolated = _extrapolate_in_pressure(solved, pressure_mmhg)
         if extrapolated is None:
             return None
         z = problem.zeros()
@@ -118,6 +142,8 @@ class PairWorkspace:
 
     def close(self) -> None:
         self.linsolve.free()
+        if self._refined is not None:
+            self._refined[2].close()
 
     def __enter__(self) -> "PairWorkspace":
         return self
@@ -445,17 +471,28 @@ def make_pair(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str
        stepping, which `solve` does; tests check that both land within 1e-3 mm of x_ED).
     With a `workspace` (pairs on the same ED mesh one after another), the inverse and forward use its
     problem and solver instead of building their own. A preset with `refinement_levels` makes the
-    pair on the refined mesh (no workspace), started from `initial_unloaded` or its `coarse_guess`
+    pair on the refined mesh (in the workspace's `refined` one, if given), started from `initial_unloaded` or its `coarse_guess`
     preset's answer on `ed_mesh`, and returns it at `ed_mesh`'s vertices: the loaded geometry is
     then x_ED to the round-trip tolerance, and the unloaded one the refined solution there.
     Raises SolveError on failure."""
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
     if fid.refinement_levels:  # the pair on the refined mesh, at the original vertices
         t0 = time.perf_counter()
-        guess = _refined_guess(ed_mesh, params, fid, base, initial_unloaded, fibres)
+        fine_mesh, fine_workspace = ((refine_uniform(ed_mesh, fid.refinement_levels), None) if workspace is None
+                                     else workspace.refined(ed_mesh, fid.refinement_levels))
+        # the chain's pairs solved on the refined mesh, extrapolated there (an unloaded geometry
+        # interpolated from `ed_mesh` has straight edges where the refined solutions curve)
+        guess = None if fine_workspace is None else fine_workspace.unloaded_guess(params, fid.unrefined(), base, fibres)
+        if guess is not None:
+            try:
+                check_geometry(guess, fine_mesh.tets)
+            except MeshError:
+                guess = None
+        if guess is None:
+            guess = _refined_guess(ed_mesh, params, fid, base, initial_unloaded, fibres)
         guess_s = time.perf_counter() - t0
-        fine = make_pair(refine_uniform(ed_mesh, fid.refinement_levels), params, fid.unrefined(), base, guess,
-                         forward_from_scratch, fibres)
+        fine = make_pair(fine_mesh, params, fid.unrefined(), base, guess, forward_from_scratch, fibres,
+                         workspace=fine_workspace)
         n = ed_mesh.n_nodes
         stats = dict(fine.stats, guess_wall_s=fine.stats["guess_wall_s"] + guess_s,
                      wall_s=time.perf_counter() - t0)
