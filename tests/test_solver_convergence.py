@@ -2,14 +2,18 @@
 and the Richardson arithmetic of `heartctl bench convergence`."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from orchestrator.tasks import run_chain
 from solver.convergence import (CASES, ConvergenceSpec, Hierarchy, convergence_shape, markdown_report, nodal_error,
                                 observed_order, parse_hierarchies, richardson_error, run_convergence, unload_at_level)
 from solver.elements import quadrature_barycentric
+from solver.fidelity import get_fidelity
 from solver.fibres import fibre_frames
-from solver.lv import forward_solve, inverse_solve, make_pair
+from solver.lv import forward_solve, inverse_solve
 from solver.mesh import boundary_facets, scaled_jacobian, signed_tet_volumes
 from solver.meshing import mesh_lv, mesh_truncated_ellipsoid
 from solver.refine import prolongate, refine_uniform
@@ -117,25 +121,43 @@ def test_mesh_hierarchies_parse_and_bad_ones_are_refused():
         ConvergenceSpec(shapes=("round",)).validate()
 
 
-def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny, one_level):
+@pytest.fixture(scope="module")
+def reference_chain(tiny):
+    """Two `reference` pairs in a pressure chain, as `generate` solves them: the mid case, then 12 mmHg."""
+    mid = CASES["mid"]
+    return run_chain(tiny, [mid, replace(mid, pressure_mmhg=12.0)], "reference")
+
+
+def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny, one_level, reference_chain):
     params = CASES["mid"]
-    pair = make_pair(tiny, params, "reference")
-    assert pair.unloaded_nodes.shape == tiny.nodes.shape
-    assert np.linalg.norm(pair.loaded_nodes - tiny.nodes, axis=1).max() < 1e-3
+    pair = reference_chain[0]  # the chain's first pair, solved cold
+    assert pair["ok"] and pair["unloaded"].shape == tiny.nodes.shape
+    assert np.linalg.norm(pair["loaded"] - tiny.nodes, axis=1).max() < 1e-3
     # accurate on the mesh as given is as far from it as from the inverse on the refined mesh that
     # bench convergence solved (one_level: accurate's level-1 answer is its reference): the pair is
     # that refined solve, at the ED nodes
     coarse = inverse_solve(tiny, params, "accurate")
-    gap = nodal_error(coarse.unloaded_nodes, pair.unloaded_nodes, tiny.nodes)
+    gap = nodal_error(coarse.unloaded_nodes, pair["unloaded"], tiny.nodes)
     level0 = next(r for r in one_level["rows"] if r["preset"] == "accurate" and r["level"] == 0)
     assert gap["mean_mm"] > 0.01  # the mesh's own discretisation error
     assert abs(gap["mean_mm"] - level0["mean_mm"]) < 2e-3 and abs(gap["max_mm"] - level0["max_mm"]) < 5e-3
-    fwd = forward_solve(tiny.with_nodes(pair.unloaded_nodes), params, "reference")
+    fwd = forward_solve(tiny.with_nodes(pair["unloaded"]), params, "reference")
     assert fwd.loaded_nodes.shape == tiny.nodes.shape
     inv = inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes)
-    assert np.abs(inv.unloaded_nodes - pair.unloaded_nodes).max() < 1e-3
+    assert np.abs(inv.unloaded_nodes - pair["unloaded"]).max() < 1e-3
     with pytest.raises(ValueError, match="one point per ED node"):
         inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes[:-1])
+
+
+def test_a_reference_chain_solves_on_one_refined_mesh_from_its_own_refined_pairs(reference_chain):
+    """A refined preset's chain keeps one workspace on the refined mesh: the second pair's inverse
+    starts from the refined pair before it (no coarse solve) and meets the preset's tolerance (the
+    inverse's answer is the one geometry that inflates onto x_ED)."""
+    first, second = reference_chain
+    tol = get_fidelity("reference").inverse_tol_mm
+    assert second["ok"] and [r["attempts"] for r in reference_chain] == [1, 1]
+    assert second["warm_start"] and second["stats"]["guess_wall_s"] < 0.1 * first["stats"]["guess_wall_s"]
+    assert second["stats"]["inverse_mismatch_mm"] <= tol and second["stats"]["roundtrip_error_mm"] < 10 * tol
 
 
 def test_the_report_names_its_reference(one_level):

@@ -242,17 +242,3 @@ def test_an_accurate_chain_starts_from_its_neighbours_loaded_states(mesh, monkey
         assert w.stats["roundtrip_error_mm"] < 10 * tol
     assert warm_factorizations < 0.7 * plain_factorizations, (warm_factorizations, plain_factorizations)
 
-
-def test_a_reference_chain_solves_on_one_refined_mesh_from_its_own_refined_pairs():
-    """A refined preset's chain keeps one workspace on the refined mesh: from the second pair on, the
-    inverse starts from the refined pairs before it (no coarse solve) and meets the preset's
-    tolerance (the inverse's answer is the one geometry that inflates onto x_ED)."""
-    from solver.convergence import convergence_shape
-    from solver.meshing import mesh_lv
-
-    small = mesh_lv(convergence_shape("mean"), 50)
-    warm = run_chain(small, CHAIN[:2], "reference")
-    tol = get_fidelity("reference").inverse_tol_mm
-    assert [r["ok"] for r in warm] == [True, True] and [r["attempts"] for r in warm] == [1, 1]
-    assert warm[1]["stats"]["guess_wall_s"] < 0.1 * warm[0]["stats"]["guess_wall_s"]  # no coarse solve
-    assert warm[1]["stats"]["inverse_mismatch_mm"] <= tol and warm[1]["stats"]["roundtrip_error_mm"] < 10 * tol

@@ -387,11 +387,10 @@ def test_ray_train_two_gloo_workers_checkpoint_and_resume(store, tmp_path, local
         train_with_ray(_cfg(store, epochs=5, lr=1e12), run, gpus=0, cpu_workers=2, max_failures=2)
     assert load_run(run)["epoch"] == 2
     # a rerun with nothing left to train reports nothing: the divergence marker Ray restores (its latest
-    # checkpoint's metrics) is the earlier call's, not a new divergence
+    # checkpoint's metrics) is the earlier call's, not a new divergence, and the state it resumes from
+    # is the run's, not the marker (a run resumed through Ray and trained on: tests/test_cluster_nodes.py)
     assert train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=1, max_failures=0)["epoch"] == 2
-    s = train_with_ray(_cfg(store, epochs=3), run, gpus=0, cpu_workers=1, max_failures=0)
-    assert s["epoch"] == 3 and load_run(run)["epoch"] == 3
-    assert [h["epoch"] for h in load_run(run)["history"]] == [1, 2, 3]  # epochs 1–2 came from the checkpoint
+    assert [h["epoch"] for h in load_run(run)["history"]] == [1, 2]
     # a store the workers cannot read (the driver's checks passed, e.g. a path on the driver's own disk):
     # one line naming the worker, not Ray's failure retried --max-failures times
     with pytest.raises(TrainerError, match=r"missing\.zarr.*\(Ray worker 0 on "):
