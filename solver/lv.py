@@ -74,9 +74,10 @@ class PairWorkspace:
         self._refined: tuple[int, TetMesh, PairWorkspace] | None = None
 
     def refined(self, ed_mesh: TetMesh, levels: int) -> tuple[TetMesh, "PairWorkspace"]:
-        """`refine_uniform(ed_mesh, levels)` and its own workspace, built once: where a preset with
-        `refinement_levels` solves the pairs of this chain."""
-        if self._refined is None or self._refined[0] != levels:
+        """`refine_uniform(ed_mesh, levels)` and its own workspace, built once (again for another
+        level or ED geometry): where a preset with `refinement_levels` solves the pairs of this chain."""
+        if (self._refined is None or self._refined[0] != levels
+                or not np.array_equal(self._refined[1].nodes[: ed_mesh.n_nodes], ed_mesh.nodes)):
             if self._refined is not None:
                 self._refined[2].close()
             fine = refine_uniform(ed_mesh, levels)
