@@ -69,7 +69,9 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
     r_prev = None
     rnorm = float("nan")
     fresh = False  # does the factorisation belong to the current state's tangent?
-    need_tangent = not (reuse_factor and linsolve.has_factor)
+    # a held factorisation serves only a tangent of this problem's size (a workspace holds one solver
+    # for problems of several supports)
+    need_tangent = not (reuse_factor and linsolve.size == problem.free.size)
     z_before = None  # the state the last step started from
     known = None  # (R, min det F) already assembled at z, by the backtracking
     budget_used = 0.0  # max_newton counts full steps; a modified step counts MODIFIED_STEP_WEIGHT
@@ -117,7 +119,10 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
             fresh = True
         else:
             fresh = False
-        dz = linsolve.solve_factored(-R)
+        try:
+            dz = linsolve.solve_factored(-R)  # SingularMatrix: the symmetric part's LU fallback failed
+        except SingularMatrix:
+            return z, False, "singular tangent"
         stats.linear_s += time.perf_counter() - t0
         stats.newton_iterations += 1
         stats.newton_iterations_here += 1

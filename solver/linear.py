@@ -71,14 +71,24 @@ class _SymmetricPart:
         if not self.symmetric:
             return
         self.transposed = at.data.astype(np.int64) - 1
+        # the upper triangle with every diagonal entry: PARDISO's symmetric types need the diagonal
+        # stored, zeros included (the gauge multipliers' rows have none; without it MKL factorised
+        # wrongly, or crashed, once a solver had analysed another pattern)
         upper = A.indices >= rows
-        self.upper = np.flatnonzero(upper)
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[upper], minlength=n))]).astype(np.int32)
-        self.indices = A.indices[upper].astype(np.int32)
+        missing = np.setdiff1d(np.arange(n), rows[A.indices == rows])
+        r = np.concatenate([rows[upper], missing])
+        c = np.concatenate([A.indices[upper], missing])
+        order = np.lexsort((c, r))
+        self.source = np.concatenate([np.flatnonzero(upper), np.full(missing.size, -1)])[order]  # −1: a zero
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))]).astype(np.int32)
+        self.indices = c[order].astype(np.int32)
 
     def of(self, A: sp.csr_matrix) -> sp.csr_matrix:
         values = 0.5 * (A.data + A.data[self.transposed])
-        return sp.csr_matrix((values[self.upper], self.indices, self.indptr), shape=A.shape)
+        upper = np.zeros(self.source.size)
+        stored = self.source >= 0
+        upper[stored] = values[self.source[stored]]
+        return sp.csr_matrix((upper, self.indices, self.indptr), shape=A.shape)
 
 
 class SparseSolver:
@@ -175,6 +185,8 @@ class SparseSolver:
         part, an approximate solve of A x = b even for the current one)."""
         if self._A is None:
             raise RuntimeError("no factorisation to solve with")
+        if len(b) != self._A.shape[0]:
+            raise ValueError(f"right-hand side of {len(b)} unknowns for a factorisation of {self._A.shape[0]}")
         self.solves += 1
         b = np.ascontiguousarray(b, dtype=np.float64)
         if self.backend == "superlu":
@@ -188,8 +200,8 @@ class SparseSolver:
                 self.symmetric_part = False
                 A = self._A
                 self.free()
-                self.factorize(A)
                 self.factorizations -= 1  # the same tangent, factorised the other way
+                self.factorize(A)  # SingularMatrix from here reaches the caller as from factorize
                 x = self._substitute(b)
         return x
 
@@ -212,11 +224,17 @@ class SparseSolver:
             x_next = x + self._substitute(r)
             r_next = b - self._A @ x_next
             next_norm = float(np.linalg.norm(r_next))
-            if next_norm < r_norm:
-                x, r = x_next, r_next
-            if next_norm > 0.5 * r_norm:  # stalled at round-off
+            if next_norm >= r_norm:
                 break
-            r_norm = next_norm
+            x, r, halved, r_norm = x_next, r_next, next_norm <= 0.5 * r_norm, next_norm
+            if not halved:  # stalled: at round-off, or too far from symmetric to refine
+                break
+        if r_norm > 1e-8 * scale:  # not a direct solver's answer: the LU of A instead
+            self.symmetric_part = False
+            self.free()
+            self.factorizations -= 1
+            self.factorize(A)
+            x = self._substitute(np.ascontiguousarray(b, dtype=np.float64))
         return x
 
     def forget(self) -> None:

@@ -84,6 +84,9 @@ class PairWorkspace:
             self._refined = (levels, fine, PairWorkspace(fine))
         return self._refined[1], self._refined[2]
 
+    def _key_of(self, problem: MechanicsProblem) -> tuple | None:
+        return next((k for k, p in self._problems.items() if p is problem), None)
+
     @staticmethod
     def _key(params: CaseParameters, fidelity: Fidelity, base: str, fibres: str) -> tuple:
         return (fidelity, base, fibres, params.stiffness_pa)
@@ -108,10 +111,14 @@ class PairWorkspace:
         unloaded geometry, the loaded configuration (every displacement dof's position, mm) and the
         rest of the unknowns (pressure field, gauge multipliers), for the next pair's `unloaded_guess`
         and `loaded_guess`."""
-        key = next(k for k, p in self._problems.items() if p is problem)
+        key = self._key_of(problem)
+        if key is None:  # not a problem of this workspace
+            return
         u, _ = problem.split(state)
         loaded = np.concatenate([(problem.dofmap.points + u).ravel(), state[problem.n_u:]])
-        self._solved.setdefault(key, []).append((float(pressure_mmhg), problem.nodes.copy(), loaded))
+        solved = self._solved.setdefault(key, [])
+        solved.append((float(pressure_mmhg), problem.nodes.copy(), loaded))
+        del solved[:-2]  # the extrapolation uses the last two
 
     def unloaded_guess(self, params: CaseParameters, fidelity: Fidelity, base: str, fibres: str) -> np.ndarray | None:
         """`unloaded_guess` from the remembered pairs of this preset, base, fibre rule and stiffness."""
@@ -126,8 +133,7 @@ class PairWorkspace:
         (`_state_from_vertices`: straight edges, zero pressure field) is far from equilibrium, this
         one starts with the curved edges and the pressure field of the neighbouring pairs: on an
         800-node `accurate` chain, its first residual was 1e2–1e3× smaller."""
-        key = next(k for k, p in self._problems.items() if p is problem)
-        solved = [(p, loaded) for p, _, loaded in self._solved.get(key, [])]
+        solved = [(p, loaded) for p, _, loaded in self._solved.get(self._key_of(problem), [])]
         extrapolated = _extrapolate_in_pressure(solved, pressure_mmhg)
         if extrapolated is None:
             return None

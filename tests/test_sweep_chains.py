@@ -242,3 +242,27 @@ def test_an_accurate_chain_starts_from_its_neighbours_loaded_states(mesh, monkey
         assert w.stats["roundtrip_error_mm"] < 10 * tol
     assert warm_factorizations < 0.7 * plain_factorizations, (warm_factorizations, plain_factorizations)
 
+
+
+def test_one_workspace_serves_pairs_of_other_supports_in_turn():
+    """A workspace holds one sparse solver for problems of several supports (sliding and clamped
+    bases: tangents of other sizes and patterns, the gauge rows without a stored diagonal): pairs in
+    turn, each started from the last of its own kind, give what pairs solved alone give, with the
+    symmetric-part factorisation kept."""
+    from dataclasses import replace as dc_replace
+
+    from solver.convergence import CASES, convergence_shape
+    from solver.lv import PairWorkspace, make_pair
+    from solver.meshing import mesh_lv
+
+    small = mesh_lv(convergence_shape("mean"), 50)
+    mid, high = CASES["mid"], dc_replace(CASES["mid"], pressure_mmhg=12.0)
+    tol = get_fidelity("fast").inverse_tol_mm
+    with PairWorkspace(small) as workspace:
+        first = {base: make_pair(small, mid, "fast", base, workspace=workspace) for base in ("sliding", "clamped")}
+        for base in ("sliding", "clamped"):
+            pair = make_pair(small, high, "fast", base, initial_unloaded=first[base].unloaded_nodes,
+                             workspace=workspace)
+            alone = make_pair(small, high, "fast", base)
+            assert np.linalg.norm(pair.unloaded_nodes - alone.unloaded_nodes, axis=1).max() < 5 * tol
+        assert workspace.linsolve.symmetric_part and workspace.linsolve.skew_residual < 1e-2
