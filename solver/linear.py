@@ -59,7 +59,7 @@ SKEW_LIMIT = 0.1  # a symmetric-part step whose relative residual ‖A x − b�
 class _SymmetricPart:
     """½(A + Aᵀ) on the upper triangle (what PARDISO's symmetric types read) for one CSR pattern that
     is structurally symmetric: the positions are worked out once, each tangent's values then cost one
-    gather. `of(A)` is None for a pattern that is not symmetric."""
+    gather. `symmetric` is False (and `of` unusable) for a pattern that is not."""
 
     def __init__(self, A: sp.csr_matrix):
         n = A.shape[0]
@@ -196,14 +196,18 @@ class SparseSolver:
             self._check = False
             scale = float(np.linalg.norm(b))
             self.skew_residual = float(np.linalg.norm(b - self._A @ x)) / scale if scale > 0 else 0.0
-            if not self.skew_residual <= SKEW_LIMIT:  # too far from symmetric here: LU from now on
-                self.symmetric_part = False
-                A = self._A
-                self.free()
-                self.factorizations -= 1  # the same tangent, factorised the other way
-                self.factorize(A)  # SingularMatrix from here reaches the caller as from factorize
-                x = self._substitute(b)
+            if not self.skew_residual <= SKEW_LIMIT:  # too far from symmetric here
+                x = self._lu_from_now_on(self._A, b)
         return x
+
+    def _lu_from_now_on(self, A: sp.csr_matrix, b: np.ndarray) -> np.ndarray:
+        """Factorise A itself (the same tangent, so not counted again) and keep to the LU for later
+        factorisations; A⁻¹b. SingularMatrix reaches the caller as from `factorize`."""
+        self.symmetric_part = False
+        self.free()
+        self.factorizations -= 1
+        self.factorize(A)
+        return self._substitute(np.ascontiguousarray(b, dtype=np.float64))
 
     def _substitute(self, b: np.ndarray) -> np.ndarray:
         self._pardiso.set_phase(33)
@@ -213,7 +217,7 @@ class SparseSolver:
         """x with A x = b to a direct solver's accuracy (the symmetric part's answer refined against A)."""
         self.factorize(A)
         x = self.solve_factored(b)
-        if self._M is None or self._M is self._A:
+        if self._M is None or self._M is self._A:  # SuperLU, or the LU of A
             return x
         r = b - self._A @ x
         scale = float(np.linalg.norm(b))
@@ -230,11 +234,7 @@ class SparseSolver:
             if not halved:  # stalled: at round-off, or too far from symmetric to refine
                 break
         if r_norm > 1e-8 * scale:  # not a direct solver's answer: the LU of A instead
-            self.symmetric_part = False
-            self.free()
-            self.factorizations -= 1
-            self.factorize(A)
-            x = self._substitute(np.ascontiguousarray(b, dtype=np.float64))
+            x = self._lu_from_now_on(A, b)
         return x
 
     def forget(self) -> None:

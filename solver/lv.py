@@ -137,14 +137,11 @@ class PairWorkspace:
         extrapolated = _extrapolate_in_pressure(solved, pressure_mmhg)
         if extrapolated is None:
             return None
-        z = problem.zeros()
         u = extrapolated[: problem.n_u].reshape(-1, 3) - problem.dofmap.points
         u[: len(x_ed)] = x_ed - problem.nodes
-        z[: problem.n_u] = u.ravel()
-        z[problem.n_u:] = extrapolated[problem.n_u:]
-        fixed = np.ones(problem.n_full, bool)
-        fixed[problem.free] = False
-        z[fixed] = 0.0
+        guess = np.concatenate([u.ravel(), extrapolated[problem.n_u:]])
+        z = problem.zeros()  # the supported components stay zero
+        z[problem.free] = guess[problem.free]
         return z
 
     def close(self) -> None:
