@@ -2,7 +2,7 @@
 the worker node lost mid-run. The sweep, joined with --address, finishes on the head with every case
 done once and equal to the same pressure chains solved uninterrupted. Ray Train (two CPU workers, on different nodes) loses
 the node of one of them, restarts from its last checkpoint on the nodes left (FailureConfig) and ends
-with the uninterrupted run's weights."""
+with the weights of the same two ranks trained uninterrupted in plain DDP."""
 from __future__ import annotations
 
 import os
@@ -27,6 +27,7 @@ from trainer.checkpoint import load_run  # noqa: E402
 from trainer.config import PAPER, TrainConfig  # noqa: E402
 from trainer.ray_local import LOCAL_RAY_TRAIN_ENV  # noqa: E402
 from trainer_fixtures import make_tiny_store  # noqa: E402
+from gloo_ranks import fit_rank, spawn_ranks  # noqa: E402
 from local_ray import stop_local_ray  # noqa: E402
 
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
@@ -156,10 +157,12 @@ def test_ray_train_loses_a_node_and_resumes_from_its_last_checkpoint(cluster, tm
     cfg = TrainConfig(store=store, config_name="paper-small", model=replace(SMALL, dropout=0.0), epochs=5,
                       batch_size=4, num_threads=1)
 
+    # the uninterrupted run: the same two ranks in plain DDP (no Ray), in processes of their own
+    whole = tmp_path / "whole"
+    spawn_ranks(fit_rank, 2, str(tmp_path / "rendezvous"), cfg.as_dict(), str(whole))
+
     cluster.add_node(num_cpus=1)  # a spare: two CPUs are left for the restart when a node is lost
     cluster.wait_for_nodes()
-    train_with_ray(cfg, tmp_path / "whole", gpus=0, cpu_workers=2, max_failures=0)
-
     run = tmp_path / "lost"
 
     def a_training_node_after_the_first_checkpoint():
@@ -174,8 +177,9 @@ def test_ray_train_loses_a_node_and_resumes_from_its_last_checkpoint(cluster, tm
         summary = train_with_ray(cfg, run, gpus=0, cpu_workers=2, max_failures=2)
     assert killed and not isinstance(killed[0], Exception), killed
     assert killed[0] < cfg.epochs, f"the node died after the run's last epoch ({killed})"
-    assert summary["epoch"] == cfg.epochs
-    lost, whole = load_run(run), load_run(tmp_path / "whole")
+    assert summary["epoch"] == cfg.epochs and summary["workers"] == 2 and summary["backend"] == "gloo"
+    assert any(p.name.startswith("checkpoint_") for p in (run / "ray").iterdir())
+    lost, whole = load_run(run), load_run(whole)
     assert [h["epoch"] for h in lost["history"]] == list(range(1, cfg.epochs + 1))
     for part in ("model", "best_model"):
         for name, w in whole[part].items():
