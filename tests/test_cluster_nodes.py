@@ -50,6 +50,7 @@ def cluster():
     c.add_node(num_cpus=1)
     c.wait_for_nodes()
     init_ray(address=c.address)
+    _a_solver_worker_on_every_node()
     yield c
     ray.shutdown()
     c.shutdown()
@@ -62,6 +63,20 @@ def cluster():
         recorded.unlink(missing_ok=True)
     else:
         recorded.write_bytes(before)
+
+
+def _a_solver_worker_on_every_node() -> None:
+    """A worker process of this job on every node, the solver imported and the process left idle in
+    its node's pool, so a sweep's first tasks start on both nodes at once: a node that had still to
+    start a process (seconds on a busy machine) could see the other run every chain first."""
+    from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+    def import_the_solver() -> None:  # local: Ray ships it by value (this test module is not on the workers' path)
+        import orchestrator.tasks  # noqa: F401
+
+    warm = ray.remote(num_cpus=1)(import_the_solver)
+    ray.get([warm.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote()
+             for n in ray.nodes() if n["Alive"]])
 
 
 def _worker_node(cluster):

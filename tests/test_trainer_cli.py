@@ -556,7 +556,7 @@ def test_a_fresh_run_that_diverges_leaves_nothing(trained, tmp_path):
 
 def test_a_damaged_chunk_in_the_store_is_one_line(trained, tmp_path):
     """A chunk that does not decompress (zarr/numcodecs raise RuntimeError): exit 2 and one line from
-    train and evaluate, not a traceback (before: exit 1; under Ray, retried --max-failures times)."""
+    train and evaluate, not a traceback with exit 1 (nor, under Ray, a failure retried --max-failures times)."""
     store = tmp_path / "damaged.zarr"
     shutil.copytree(trained["store"], store)
     chunks = sorted(p for p in store.glob("shapes/*/unloaded/c/**/*") if p.is_file())

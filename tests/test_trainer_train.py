@@ -379,7 +379,7 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     assert chosen.mean_distance_mm(cases.features, cases.params, val_disp, norm) == pytest.approx(min(grid_md))
 
 
-def test_ray_train_resumes_a_plain_run_and_reports_divergence_and_refusals(store, tmp_path, local_ray):
+def test_ray_train_resumes_a_plain_run_and_a_divergence_is_one_line(store, tmp_path, local_ray):
     """Two gloo CPU workers take a run on from the plain loop's checkpoint.pt (a run Ray Train starts
     from scratch, two workers on two nodes, checkpoints and resumes: tests/test_cluster_nodes.py)."""
     from trainer.ray_train import serves_state_api, train_with_ray
@@ -397,12 +397,47 @@ def test_ray_train_resumes_a_plain_run_and_reports_divergence_and_refusals(store
     # is the run's, not the marker (a run resumed through Ray and trained on: tests/test_cluster_nodes.py)
     assert train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=1, max_failures=0)["epoch"] == 2
     assert [h["epoch"] for h in load_run(run)["history"]] == [1, 2]
-    # a store the workers cannot read (the driver's checks passed, e.g. a path on the driver's own disk):
-    # one line naming the worker, not Ray's failure retried --max-failures times
-    with pytest.raises(TrainerError, match=r"missing\.zarr.*\(Ray worker 0 on "):
-        train_with_ray(_cfg(str(tmp_path / "missing.zarr")), tmp_path / "ray_missing", gpus=0, cpu_workers=1,
-                       max_failures=2)
-    assert not (tmp_path / "ray_missing").exists()  # nothing to resume from: Ray's storage is not left behind
+
+
+def test_a_worker_that_cannot_read_the_store_refuses_in_one_line_naming_itself(tmp_path):
+    """The driver's checks passed (e.g. a path on the driver's own disk) but a worker cannot read the
+    store: its refusal names it, and on another machine says what every worker needs."""
+    from trainer.ray_train import worker_data
+
+    missing = _cfg(str(tmp_path / "gone" / "missing.zarr"))
+    bundle, here = worker_data(missing, 0, "10.0.0.2", same_host=True)
+    assert bundle is None and here == f"folder {tmp_path / 'gone'} does not exist (Ray worker 0 on 10.0.0.2)"
+    _, elsewhere = worker_data(missing, 1, "10.0.0.3", same_host=False)
+    assert "(Ray worker 1 on 10.0.0.3, not the driver's machine: every worker must reach the store" in elsewhere
+
+
+def test_a_refusal_before_any_checkpoint_leaves_nothing(store, tmp_path, monkeypatch, local_ray):
+    """The workers refused before any checkpoint (Ray Train's run stubbed by what it returns then: the
+    refusal marker's metrics, no checkpoint): the driver raises the refusal as its one line and
+    removes Ray's storage and the run directory it made, so nothing is left to resume from (a
+    refusal reported through real workers: the divergence above)."""
+    from types import SimpleNamespace
+
+    from ray.train.torch import TorchTrainer
+
+    from trainer.ray_train import REFUSED, train_with_ray
+
+    run = tmp_path / "fresh"
+    refusal = "folder /elsewhere does not exist (Ray worker 0 on 10.0.0.2)"
+
+    def refused(trainer):
+        (run / "ray" / "checkpoint_tmp").mkdir(parents=True)  # what Ray's storage holds by then
+        return SimpleNamespace(error=None, metrics={REFUSED: refusal, "heartctl_call": trainer.train_loop_config["call"]},
+                               best_checkpoints=[], checkpoint=None)
+
+    monkeypatch.setattr(TorchTrainer, "fit", refused)
+    with pytest.raises(TrainerError) as info:
+        train_with_ray(_cfg(store), run, gpus=0, cpu_workers=2, max_failures=2)
+    assert str(info.value) == refusal and not run.exists()
+    run.mkdir()  # the user's own folder stays, empty
+    with pytest.raises(TrainerError):
+        train_with_ray(_cfg(store), run, gpus=0, cpu_workers=2, max_failures=2)
+    assert run.is_dir() and not any(run.iterdir())
 
 
 def test_a_refusal_on_one_rank_stops_every_rank(tmp_path):
