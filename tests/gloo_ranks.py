@@ -1,5 +1,6 @@
-"""Functions that spawned processes run as the ranks of a gloo process group (a light module: each
-spawned process imports it, and not the test module that started it)."""
+"""Functions that spawned processes run as the ranks of a gloo process group, and spawn_ranks, which
+starts them (a light module: each spawned process imports it, and not the test module that started
+it)."""
 from __future__ import annotations
 
 
