@@ -70,7 +70,7 @@ class _SymmetricPart:
                           and np.array_equal(at.indices, A.indices))
         if not self.symmetric:
             return
-        self.transposed = at.data.astype(np.int64) - 1
+        transposed = at.data.astype(np.int64) - 1  # the position in A of each entry's mirror image
         # the upper triangle with every diagonal entry: PARDISO's symmetric types need the diagonal
         # stored, zeros included (the gauge multipliers' rows have none; without it MKL factorised
         # wrongly, or crashed, once a solver had analysed another pattern)
@@ -79,15 +79,16 @@ class _SymmetricPart:
         r = np.concatenate([rows[upper], missing])
         c = np.concatenate([A.indices[upper], missing])
         order = np.lexsort((c, r))
-        self.source = np.concatenate([np.flatnonzero(upper), np.full(missing.size, -1)])[order]  # −1: a zero
+        source = np.concatenate([np.flatnonzero(upper), np.full(missing.size, -1)])[order]  # −1: a zero
+        self.stored = source >= 0  # the upper triangle's entries that A stores (the others: zero diagonals)
+        self.source = source[self.stored]  # A's positions of the upper triangle's stored entries
+        self.mirror = transposed[self.source]  # and of their mirror images below the diagonal
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(r, minlength=n))]).astype(np.int32)
         self.indices = c[order].astype(np.int32)
 
     def of(self, A: sp.csr_matrix) -> sp.csr_matrix:
-        values = 0.5 * (A.data + A.data[self.transposed])
-        upper = np.zeros(self.source.size)
-        stored = self.source >= 0
-        upper[stored] = values[self.source[stored]]
+        upper = np.zeros(self.stored.size)
+        upper[self.stored] = 0.5 * (A.data[self.source] + A.data[self.mirror])
         return sp.csr_matrix((upper, self.indices, self.indptr), shape=A.shape)
 
 

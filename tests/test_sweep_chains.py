@@ -243,7 +243,6 @@ def test_an_accurate_chain_starts_from_its_neighbours_loaded_states(mesh, monkey
     assert warm_factorizations < 0.7 * plain_factorizations, (warm_factorizations, plain_factorizations)
 
 
-
 def test_one_workspace_serves_pairs_of_other_supports_in_turn():
     """A workspace holds one sparse solver for problems of several supports (sliding and clamped
     bases: tangents of other sizes and patterns, the gauge rows without a stored diagonal): pairs in
