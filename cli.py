@@ -466,18 +466,23 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
                       meshes: str = typer.Option("150:2,350:1,800:1", "--meshes", help="NODES:LEVELS,… : gmsh meshes of about NODES nodes, each refined uniformly LEVELS times (≥ 2 levels give observed orders)."),
                       base: Base = BaseOpt, fibres: str = FibresOpt,
                       out: Path = typer.Option(Path("reports/convergence"), "--out", help="Report folder: convergence.md, .png, .json, and solves/ (kept: a rerun resumes)."),
-                      threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver.")):
+                      threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver."),
+                      quadrature: str = typer.Option("2,4,5,7", "--quadrature", help="Cell quadrature degrees (1–8) of the "
+                                                     "quadrature study on levels 0 and 1 of every mesh; '' skips it.")):
     """Mesh convergence of unloading: fast and accurate on a coarse and a default mesh and their uniform
     refinements, each answer's nodal error against the finest accurate answer, observed orders and the
-    finest answer's estimated own error (Richardson). Writes a Markdown table and a log-log PNG."""
+    finest answer's estimated own error (Richardson); and convergence in quadrature (each preset at
+    several cell and facet degrees). Writes a Markdown table and a log-log PNG."""
     _solver_threads(threads)
-    from solver.convergence import ConvergenceSpec, parse_hierarchies, run_convergence, write_report
+    from solver.convergence import (ConvergenceSpec, parse_hierarchies, parse_quad_degrees, run_convergence,
+                                    write_report)
 
     try:
         _check_fibres(fibres)
         spec = ConvergenceSpec(tuple(s.strip() for s in shapes.split(",") if s.strip()),
                                tuple(c.strip() for c in cases.split(",") if c.strip()), parse_hierarchies(meshes),
-                               base=base.value, fibres=fibres).validate()
+                               base=base.value, fibres=fibres,
+                               quad_degrees=parse_quad_degrees(quadrature)).validate()
         result = run_convergence(spec, out / "solves", progress=typer.echo)
     except _input_errors() as exc:
         fail(str(exc))
@@ -490,6 +495,11 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
                  else f"with the deepest mesh's order {o['order_used']:.2f}")
         typer.echo(f"{o['shape']:>6} {o['case']:>4} {o['hierarchy']:>9} {o['preset']:>8}: mean differences of levels "
                    f"{diffs} mm; {order}: finest level's error ≈ {o['finest_error_mean_mm']:.4f} mm mean")
+    for r in result["quadrature"]:
+        if not r["failed"]:
+            typer.echo(f"{r['shape']:>6} {r['case']:>4} {r['hierarchy']:>9} {r['preset']:>8} q{r['quad_degree']} "
+                       f"f{r['facet_quad_degree']} level {r['level']}: quadrature error "
+                       f"{r['quadrature']['mean_mm']:.4f} mm mean, {r['wall_s']:.1f} s")
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}")
 
 
@@ -1135,7 +1145,7 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
              local: bool = typer.Option(False, "--local", help="Two-core test mode: 3 shapes × 2 P × 2 C, coarse meshes, fast preset."),
              dry_run: bool = typer.Option(False, "--dry-run", help="Print the plan (cases, core-hours from a calibration solve) and exit."),
              retry_failed: bool = typer.Option(False, "--retry-failed", help="Also rerun cases recorded as failed."),
-             retry_damaged: bool = typer.Option(False, "--retry-damaged", help="First read every done case back; recompute those whose stored chunks are damaged (checksum mismatch)."),
+             retry_damaged: bool = typer.Option(False, "--retry-damaged", help="First read every done case back; recompute the damaged ones (data missing, short, unreadable or not finite; status codes out of range; a shape whose arrays are not as the schema says is meshed again)."),
              max_in_flight: int = typer.Option(None, "--max-in-flight", help="Tasks in flight (default 2 × the cluster's CPUs, re-read as nodes join); a task is one pressure chain."),
              warm_start: bool = typer.Option(True, "--warm-start/--no-warm-start", help="Start each inverse from the unloaded geometry of its chain's lower pressures (default) or from the ED mesh."),
              as_json: bool = typer.Option(False, "--json", help="Print the plan / final report as JSON.")):
@@ -1149,7 +1159,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         request = SweepRequest(store=store, shapes=shapes, pressures=pressures, stiffness=stiffness, endo=endo, epi=epi,
                                fidelity=fidelity, base=base, fibres=fibres, seed=seed, nodes=nodes, meshes=meshes,
                                mesh_units=None if units is None else units.value, local=local, address=address,
-                               num_cpus=num_cpus, max_in_flight=max_in_flight, retry_failed=retry_failed, dry_run=dry_run)
+                               num_cpus=num_cpus, max_in_flight=max_in_flight, retry_failed=retry_failed,
+                               retry_damaged=retry_damaged, dry_run=dry_run)
         where = RayAddress(address, connect_timeout)
         with _warnings_as_lines():
             sweep = resolve_sweep(request)
@@ -1215,8 +1226,9 @@ def _print_sweep_report(report, store: str, retry_damaged: bool, as_json: bool) 
         return
     rate = report.throughput
     if retry_damaged:
-        typer.echo(f"{len(report.damaged_reset)} damaged case(s) recomputed"
-                   + (": " + ", ".join(f"shape {a} case {b}" for a, b in report.damaged_reset[:10]) if report.damaged_reset else "")
+        typer.echo(f"{len(report.damaged_reset)} damaged case(s) or shape(s) recomputed"
+                   + (": " + ", ".join(f"shape {a} case {b}" if b is not None else f"shape {a} (meshed again, every case)"
+                                       for a, b in report.damaged_reset[:10]) if report.damaged_reset else "")
                    + (" …" if len(report.damaged_reset) > 10 else ""))
     typer.echo(f"{store}: {report.done_before + report.done} done, {report.failed_now} failed "
                f"of {report.total} ({report.done} done and {report.failed} failed in this run, "
@@ -1306,7 +1318,7 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
         typer.echo(json_line(s))
     else:
         _print_status(s, store, verify)
-    if s.get("damaged"):
+    if s.get("damaged") or s["table_damage"]:
         raise typer.Exit(1)
 
 
@@ -1325,7 +1337,8 @@ def _print_status(s: dict, store: str, verify: bool) -> None:
               f"({made}{'; ' if made else ''}{s['shapes_ready']} shapes meshed)")
     pct = lambda n: f"{100 * n / s['total']:.1f} %" if s["total"] else "—"  # noqa: E731
     con.print(f"done {s['done']} ({pct(s['done'])}), failed {s['failed']} ({pct(s['failed'])}), "
-              f"pending {s['pending']} ({pct(s['pending'])})")
+              f"pending {s['pending']} ({pct(s['pending'])})"
+              + (f", status unknown {s['unknown']} ({pct(s['unknown'])})" if s["unknown"] else ""))
     thr = s["throughput_cases_per_s"]
     lr = s["last_run"] or {}
     con.print(f"throughput (run {lr.get('index', '—')}, {lr.get('done_in_run', 0)} done"
@@ -1355,14 +1368,25 @@ def _print_status(s: dict, store: str, verify: bool) -> None:
         con.print(f"shapes that did not mesh: {s['mesh_failures']}")
     if s["hosts"]:
         con.print("done by host: " + ", ".join(f"{h} {n}" for h, n in sorted(s["hosts"].items())))
-    if verify:
-        if not s["damaged"]:
-            con.print(f"verified: all {s['done']} done cases read back intact (checksums match)")
-            return
-        for d in s["damaged"]:
-            typer.echo(f"damaged: shape {d['shape']} case {d['case']}: {d['reason']}")
-        typer.echo(f"{len(s['damaged'])} of {s['done']} done cases are damaged; "
-                   f"`heartctl generate --store {store} --retry-damaged` recomputes them")
+    damaged = s["damaged"] if verify else s["table_damage"]
+    if verify and not damaged:
+        con.print(f"verified: all {s['done']} done cases read back intact (checksums match, data present and "
+                  f"finite, arrays as the schema says)")
+    for d in damaged:
+        where = "every case" if d["case"] is None else f"case {d['case']}"
+        typer.echo(f"damaged: shape {d['shape']} {where}: {d['reason']}")
+    if damaged:
+        typer.echo(f"{_damage_count(damaged, s['cases_per_shape'])}; `heartctl generate --store {store} "
+                   f"--retry-damaged` recomputes them" + ("" if verify else "; `--verify` reads every done case"))
+
+
+def _damage_count(damaged: list, cases_per_shape: int) -> str:
+    """"2 damaged cases", "1 damaged shape (4 cases)", or both: the damage status found, in words."""
+    cases = sum(d["case"] is not None for d in damaged)
+    shapes = len(damaged) - cases
+    parts = ([f"{cases} damaged case{'s' if cases != 1 else ''}"] if cases else []) + \
+            ([f"{shapes} damaged shape{'s' if shapes != 1 else ''} ({shapes * cases_per_shape} cases)"] if shapes else [])
+    return " and ".join(parts)
 
 
 @app.command()

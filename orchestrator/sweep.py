@@ -127,10 +127,12 @@ class SweepReport:
 # --------------------------------------------------------------------------- request checks (no Ray, no writes)
 
 
-def check_request(spec: SweepSpec, location: str, for_writing: bool = True) -> dict | None:
+def check_request(spec: SweepSpec, location: str, for_writing: bool = True, retry_damaged: bool = False) -> dict | None:
     """Validate the spec and the store it targets, read-only. Returns the store's attributes
     (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line).
-    `for_writing` (not for a dry run) also needs a writable store no other driver is writing."""
+    `for_writing` (not for a dry run) also needs a writable store no other driver is writing.
+    Damage that shows without reading the cases (a shape's arrays not what the schema implies, a
+    status code out of range) is refused unless `retry_damaged`, which repairs it."""
     spec.validate()
     if for_writing and str(location).startswith("memory://"):
         raise ValueError(f"store {location}: a memory:// store vanishes when generate exits; give a folder or an "
@@ -144,8 +146,23 @@ def check_request(spec: SweepSpec, location: str, for_writing: bool = True) -> d
         conflicts = spec.conflicts(attrs)
         if conflicts:
             raise _conflict(location, conflicts)
+        _check_table_damage(location, retry_damaged)
         _check_shape_tables(location, np.asarray(attrs["case_params"], dtype=float))
     return attrs
+
+
+def _check_table_damage(location: str, retry_damaged: bool) -> None:
+    """StoreError naming the first damage of a shape's arrays or status codes, unless retry_damaged."""
+    from storage.store import PairReader, StoreError
+
+    if retry_damaged:
+        return
+    reader = PairReader(location)
+    for s in reader.shape_ids():
+        for k, why in reader.table_damage(s)[:1]:
+            where = f"shape {s}" if k is None else f"shape {s} case {k}"
+            raise StoreError(f"store {location}: {where} is damaged: {why}; `heartctl generate --retry-damaged` "
+                             f"{'meshes the shape again and recomputes its cases' if k is None else 'recomputes it'}")
 
 
 def _conflict(location: str, conflicts: list[str]) -> SweepConflict:
@@ -160,7 +177,7 @@ def _check_shape_tables(location: str, case_params: np.ndarray) -> None:
 
     reader = PairReader(location)
     for s in reader.shape_ids():
-        if not np.array_equal(reader.case_params(s), case_params):
+        if reader.shape_problem(s) is None and not np.array_equal(reader.case_params(s), case_params):
             raise SweepConflict(f"store {location}: shape {s}'s parameter table differs from the store's case_params "
                                 f"(edited by hand?); it cannot be resumed")
 
@@ -190,7 +207,7 @@ def _check_writable(location: str) -> None:
 
 def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) -> dict:
     """Read-only counts of a store for this spec: done, failed, and to_run (cases a run would submit,
-    counting every case of a shape not meshed yet)."""
+    counting every case of a shape not meshed yet or damaged, and every status code out of range)."""
     from storage.store import PairReader
 
     counts = {"done": 0, "failed": 0, "to_run": spec.n_cases}
@@ -200,10 +217,12 @@ def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) 
     ready = set(reader.shape_ids())
     to_run = 0
     for s in range(spec.shapes):
-        if s not in ready:
+        damage = reader.table_damage(s) if s in ready else [(None, "not meshed")]
+        if damage and damage[0][0] is None:
             to_run += spec.cases_per_shape
             continue
-        st = reader.status(s)
+        st = reader.status_codes(s)
+        to_run += len(damage)
         counts["done"] += int((st == DONE).sum())
         counts["failed"] += int((st == FAILED).sum())
         to_run += int((st == PENDING).sum()) + (int((st == FAILED).sum()) if retry_failed else 0)
@@ -239,12 +258,12 @@ def solver_version() -> str:
 # --------------------------------------------------------------------------- the sweep
 
 
-def open_or_create(spec: SweepSpec, location: str) -> tuple[PairStore, WriterLock]:
+def open_or_create(spec: SweepSpec, location: str, retry_damaged: bool = False) -> tuple[PairStore, WriterLock]:
     """The store to write (created when new) and its writer lock, taken before the store is opened
     (opening clears a killed writer's temporary files, which must not be another live driver's)."""
     from storage.store import _local_path, is_url
 
-    attrs = check_request(spec, location)
+    attrs = check_request(spec, location, retry_damaged=retry_damaged)
     folder = None if is_url(location) else _local_path(location)
     made = attrs is None and folder is not None and not folder.exists()
     if made:  # the lock lives in the store's folder: two drivers starting a new store meet there
@@ -257,7 +276,7 @@ def open_or_create(spec: SweepSpec, location: str) -> tuple[PairStore, WriterLoc
     try:
         # a store that looked new may have been made (and finished) by another driver before this one
         # got the lock: check again under it
-        if attrs is None and check_request(spec, location, for_writing=False) is None:
+        if attrs is None and check_request(spec, location, for_writing=False, retry_damaged=retry_damaged) is None:
             return PairStore.create(location, {**spec.store_attrs(), "solver_version": solver_version()}), lock
         store = PairStore.open(location)
         conflicts = spec.conflicts(store.attrs)  # again under the lock: another driver may have grown it since
@@ -291,8 +310,9 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
     in pressure); with `warm_start` each inverse in it starts from the unloaded geometry extrapolated
     from the chain's lower pressures; `chain_length` 1 makes every pair its own task.
     `max_in_flight` counts tasks (default: InFlightLimit, twice the cluster's CPUs as nodes join).
-    `retry_damaged`: first read every done case back and mark those whose chunks are damaged
-    (checksum mismatch) pending, so that they are recomputed. A full disk (ENOSPC, EDQUOT) while
+    `retry_damaged`: first read every done case back and mark the damaged ones pending, so that they
+    are recomputed (PairStore.reset_damaged: data missing, short, unreadable or not finite, a status
+    code out of range; a shape whose arrays are not what the schema implies is meshed again). A full disk (ENOSPC, EDQUOT) while
     writing the store raises StoreFullError, an object store that stops answering or refuses a write
     StoreLostError (one line each; the cases already written are intact)."""
     import ray
@@ -301,7 +321,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
         raise RuntimeError("run_sweep needs Ray: start it with orchestrator.ray_session first")
     t_start = time.perf_counter()
     try:
-        store, lock = open_or_create(spec, location)
+        store, lock = open_or_create(spec, location, retry_damaged)
         try:
             damaged = store.reset_damaged([s for s in range(spec.shapes) if store.shape_ready(s)]) if retry_damaged else []
             report = _run(spec, store, max_in_flight, retry_failed, progress, on_event, console, warm_start,

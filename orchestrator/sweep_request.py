@@ -18,7 +18,8 @@ class SweepRequest:
     the default); the shape set (`shapes` of the shape model at `seed` meshed to about `nodes` nodes,
     or the ED mesh files `meshes`, a folder or a glob, in `mesh_units`); and how it runs: `local`
     (two cores, a tiny grid), `num_cpus` of a local Ray or a cluster at `address`, `max_in_flight`
-    tasks, `retry_failed`, and `dry_run` (a plan, nothing written)."""
+    tasks, `retry_failed`, `retry_damaged` (damage is repaired, not refused), and `dry_run` (a plan,
+    nothing written)."""
 
     store: str
     shapes: int | None = None
@@ -38,6 +39,7 @@ class SweepRequest:
     num_cpus: int | None = None
     max_in_flight: int | None = None
     retry_failed: bool = False
+    retry_damaged: bool = False
     dry_run: bool = False
 
     def __post_init__(self):
@@ -110,6 +112,6 @@ def resolve_sweep(request: SweepRequest) -> ResolvedSweep:
         spec = resolve_spec(explicit, local=r.local, stored_attrs=stored)
         if r.mesh_units is not None and not spec.meshes:
             raise ValueError("--units gives the length unit of --meshes files; this sweep meshes the shape model")
-        stored = check_request(spec, r.store, for_writing=not r.dry_run)
+        stored = check_request(spec, r.store, for_writing=not r.dry_run, retry_damaged=r.retry_damaged)
         left = remaining_cases(spec, r.store, r.retry_failed) if stored is not None and not r.dry_run else None
     return ResolvedSweep(r, spec, stored, left)

@@ -310,13 +310,27 @@ RECOMPUTE_HINT = "`heartctl status --verify` lists the damaged cases, `heartctl 
 
 def _chunk_damage(group, k: int) -> tuple[tuple | None, str | None]:
     """((unloaded, loaded), None) of case k from a shape's group, or (None, the damage in words) when a
-    chunk does not read back (checksum mismatch, or it does not decompress)."""
+    chunk does not read back (checksum mismatch, or it does not decompress) or reads back absent or
+    not finite."""
     try:
-        return (group["unloaded"][k], group["loaded"][k]), None
+        pair = group["unloaded"][k], group["loaded"][k]
     except (TypeError, AttributeError, NameError):
         raise
     except Exception as exc:
         return None, _damage(exc)
+    why = missing_or_not_finite(*pair)
+    return (None, why) if why else (pair, None)
+
+
+def missing_or_not_finite(unloaded: np.ndarray, loaded: np.ndarray) -> str | None:
+    """Why a done case's geometries are not data, or None: a chunk that is absent reads as the fill
+    value (NaN everywhere), one with a NaN or an infinity was never written by the driver."""
+    for name, x in (("unloaded", unloaded), ("loaded", loaded)):
+        if np.isnan(x).all():
+            return f"its {name} data are missing (no stored chunk)"
+        if not np.isfinite(x).all():
+            return f"its {name} data are not finite"
+    return None
 
 
 def cases_per_object(array) -> int:
@@ -327,7 +341,8 @@ def cases_per_object(array) -> int:
 def read_cases(group, ks) -> tuple[dict, dict]:
     """({k: (unloaded, loaded)}, {k: the damage in words}) of cases ks of a shape's group, read one
     stored object at a time (a shape's shard in one read, a version 1 store's chunk per case). An object
-    that does not read whole is read case by case, so that each damaged case is named alone."""
+    that does not read whole is read case by case, so that each damaged case is named alone; a case
+    whose data read back absent or not finite is damaged too."""
     unloaded, loaded = group["unloaded"], group["loaded"]
     per_object = cases_per_object(unloaded)
     arrays, damage = {}, {}
@@ -347,7 +362,12 @@ def read_cases(group, ks) -> tuple[dict, dict]:
                 else:
                     damage[k] = why
             continue
-        arrays.update({k: (u[k - lo], l[k - lo]) for k in members})
+        for k in members:
+            why = missing_or_not_finite(u[k - lo], l[k - lo])
+            if why is None:
+                arrays[k] = (u[k - lo], l[k - lo])
+            else:
+                damage[k] = why
     return arrays, damage
 
 
@@ -365,13 +385,139 @@ def read_case_chunks(group, shape_id: int, k: int, location: str = "") -> tuple[
     return arrays
 
 
-def damaged_cases(group_of, shape_ids, status_of) -> list[tuple[int, int, str]]:
-    """(shape, case, reason) of every done case whose chunks do not read back intact."""
-    out = []
-    for s in shape_ids:
-        _, damage = read_cases(group_of(s), np.flatnonzero(status_of(s) == DONE))
-        out.extend((s, k, why) for k, why in sorted(damage.items()))
-    return out
+def shape_damage(group, root_attrs: dict) -> list[tuple[int | None, str]]:
+    """(case, the damage in words) of a shape read whole: (None, …) when its arrays are not what the
+    schema implies (every case of it is then damaged), else each status code out of range and each
+    done case whose chunks do not read back intact."""
+    problem = shape_problem(group, root_attrs, read=True)
+    if problem is not None:
+        return [(None, problem)]
+    status = group["status"][...]
+    _, damage = read_cases(group, np.flatnonzero(status == DONE))
+    return sorted(status_damage(status) + list(damage.items()), key=lambda d: d[0])
+
+
+def status_damage(status: np.ndarray) -> list[tuple[int, str]]:
+    """(case, reason) of every status code that is none of pending, done or failed."""
+    return [(int(k), f"its status code {int(status[k])} is none of "
+                     + ", ".join(f"{code} {name}" for code, name in STATUS_NAMES.items()))
+            for k in np.flatnonzero(~np.isin(status, list(STATUS_NAMES)))]
+
+
+# --------------------------------------------------------------------------- a shape's arrays, as the schema says
+
+CODEC_NAMES = ("bytes", "blosc", "crc32c")  # every chunk: _codecs() after zarr's bytes codec
+INDEX_CODEC_NAMES = ("bytes", "crc32c")  # a shard's index
+MESH_ARRAYS = ("ed_reference", "tets", "endo", "epi", "base", "coefficients")
+SHAPE_ARRAYS = MESH_ARRAYS + ("params", "status", "stats", "unloaded", "loaded")
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What one array of a shape must be: its shape (None: any length), dtype, and for the case
+    arrays their chunks, shards (None: a chunk per case) and NaN fill."""
+    shape: tuple
+    dtype: str
+    chunks: tuple | None = None
+    shards: tuple | None = None
+    case_array: bool = False
+
+
+def expected_arrays(shape_attrs: dict, root_attrs: dict) -> dict[str, ArraySpec]:
+    """The arrays of a shape as the schema, the store's case table and the shape's node and tet
+    counts imply."""
+    n, m = shape_attrs["n_nodes"], shape_attrs["n_tets"]
+    K, S = int(root_attrs["n_cases_per_shape"]), len(root_attrs["stat_names"])
+    shards = (K, n, 3) if case_layout(root_attrs) == SHARD_PER_SHAPE else None
+    case = ArraySpec((K, n, 3), np.dtype(COORD_DTYPE).name, (1, n, 3), shards, case_array=True)
+    return {"ed_reference": ArraySpec((n, 3), "float64"), "tets": ArraySpec((m, 4), "int32"),
+            **{name: ArraySpec((None, 3), "int32") for name in ("endo", "epi", "base")},
+            "coefficients": ArraySpec((None,), "float64"), "params": ArraySpec((K, len(PARAM_NAMES)), "float64"),
+            "status": ArraySpec((K,), "int8"), "stats": ArraySpec((K, S), "float64"),
+            "unloaded": case, "loaded": case}
+
+
+def shape_problem(group, root_attrs: dict, read: bool = False) -> str | None:
+    """Why a ready shape's arrays cannot be trusted, in words, or None: a node or tet count attribute
+    missing, an array missing, or of another shape, dtype, chunking or codecs than expected_arrays.
+    With `read`, its mesh and case table are read too: each must read back (checksums), the mesh be
+    finite and its tets and boundary triangles index its nodes."""
+    attrs = group.attrs
+    for name in ("n_nodes", "n_tets"):
+        if not isinstance(attrs.get(name), int) or isinstance(attrs.get(name), bool) or attrs.get(name) < 1:
+            return f"its attribute {name!r} is missing or not a positive integer"
+    arrays = {}
+    for name, spec in expected_arrays(dict(attrs), root_attrs).items():
+        array, problem = _open_array(group, name)
+        problem = problem or _array_mismatch(name, array, spec)
+        if problem:
+            return problem
+        arrays[name] = array
+    return _content_problem(arrays, attrs["n_nodes"]) if read else None
+
+
+def _open_array(group, name: str):
+    try:
+        return group[name], None
+    except (TypeError, AttributeError, NameError):
+        raise
+    except KeyError:
+        return None, f"its array {name!r} is missing"
+    except Exception as exc:
+        return None, f"its array {name!r} does not open ({_first_line(exc)[:100]})"
+
+
+def _array_mismatch(name: str, array, spec: ArraySpec) -> str | None:
+    """How an array differs from its spec, or None."""
+    import zarr
+
+    if not isinstance(array, zarr.Array):
+        return f"{name!r} is not an array"
+    shape = tuple(array.shape)
+    if len(shape) != len(spec.shape) or any(e is not None and e != g for e, g in zip(spec.shape, shape)):
+        want = "(" + ", ".join("any" if e is None else str(e) for e in spec.shape) + ")"
+        return f"its array {name!r} has shape {shape}, expected {want}"
+    if str(array.dtype) != spec.dtype:
+        return f"its array {name!r} has dtype {array.dtype}, expected {spec.dtype}"
+    if spec.case_array:
+        if tuple(array.chunks) != spec.chunks or (array.shards and tuple(array.shards)) != spec.shards:
+            return (f"its array {name!r} is chunked {tuple(array.chunks)} in shards {array.shards}, expected "
+                    f"{spec.chunks} in shards {spec.shards}")
+        if not np.isnan(array.fill_value):
+            return f"its array {name!r} has fill value {array.fill_value}, expected NaN"
+    codecs = _codec_problem(array)
+    return f"its array {name!r} {codecs}" if codecs else None
+
+
+def _codec_problem(array) -> str | None:
+    names = lambda codecs: tuple(c.to_dict()["name"] for c in codecs)  # noqa: E731
+    codecs = array.metadata.codecs
+    if array.shards is None:
+        found = names(codecs)
+        return None if found == CODEC_NAMES else f"has codecs {list(found)}, expected {list(CODEC_NAMES)}"
+    inner, index = names(codecs[0].codecs), names(codecs[0].index_codecs)
+    if (inner, index) == (CODEC_NAMES, INDEX_CODEC_NAMES) and names(codecs) == ("sharding_indexed",):
+        return None
+    return (f"has shard codecs {list(inner)} and index codecs {list(index)}, expected {list(CODEC_NAMES)} and "
+            f"{list(INDEX_CODEC_NAMES)}")
+
+
+def _content_problem(arrays: dict, n_nodes: int) -> str | None:
+    """Why the mesh and case table of a shape do not read back as data, or None."""
+    values = {}
+    for name in MESH_ARRAYS + ("params", "status", "stats"):
+        try:
+            values[name] = arrays[name][...]
+        except (TypeError, AttributeError, NameError):
+            raise
+        except Exception as exc:
+            return f"its array {name!r} is damaged: {_damage(exc)}"
+    if not np.isfinite(values["ed_reference"]).all():
+        return "its mesh's node coordinates are not finite"
+    for name in ("tets", "endo", "epi", "base"):
+        if values[name].size and (values[name].min() < 0 or values[name].max() >= n_nodes):
+            return f"its array {name!r} indexes nodes outside 0–{n_nodes - 1}"
+    return None
 
 
 def _write_rows(array, ks: list, block: np.ndarray) -> None:
@@ -667,18 +813,30 @@ class PairStore:
             t.failures[str(k)] = reason
         t.dirty = True
 
-    def reset_damaged(self, shape_ids) -> list[tuple[int, int, str]]:
-        """Mark every done case whose chunks are damaged pending again (a sweep then recomputes it);
-        returns them as (shape, case, reason)."""
-        found = damaged_cases(lambda s: self._handle(s)["group"], shape_ids, self.status)
-        for s, k, _ in found:
-            self.set_case(s, k, PENDING, np.full(len(STAT_NAMES), np.nan))
-        if found:
-            self.flush()
-        for s in sorted({s for s, _, _ in found}):
+    def reset_damaged(self, shape_ids) -> list[tuple[int, int | None, str]]:
+        """Mark every damaged case of the shapes pending again, so that a sweep recomputes it: a done
+        case whose chunks do not read back intact, a status code out of range. A shape whose arrays
+        are not what the schema implies is marked not ready: the sweep meshes it again and solves
+        every case of it. Returns the damage as (shape, case, reason), case None for a whole shape."""
+        found = []
+        for s in shape_ids:
+            damage = shape_damage(self._shapes()[str(s)], self.attrs)
+            if damage and damage[0][0] is None:
+                self._unready(s)
+            for k, _ in (damage if not damage or damage[0][0] is not None else ()):
+                self.set_case(s, k, PENDING, np.full(len(STAT_NAMES), np.nan))
+            found.extend((s, k, why) for k, why in damage)
+        self.flush()
+        for s in sorted({s for s, k, _ in found if k is not None}):
             if self.sharded and not (self.table(s).status == DONE).any():
                 self._drop_cases(s)
         return found
+
+    def _unready(self, shape_id: int) -> None:
+        """Mark a shape not ready: the next sweep meshes it again, its cases all pending."""
+        self._shapes()[str(shape_id)].attrs.update({"ready": False})
+        self._tables.pop(shape_id, None)
+        self._handles.pop(shape_id, None)
 
     def _drop_cases(self, shape_id: int) -> None:
         """Delete the case shards of a shape that has no done case: a shard whose index is damaged
@@ -761,16 +919,47 @@ class PairReader:
                 ids.append(int(key))
         return sorted(ids)
 
+    def _group(self, shape_id: int):
+        """The group of a ready shape, unchecked; StoreError for one the store has not meshed."""
+        shapes = self.root["shapes"]
+        key = str(shape_id)
+        if key not in shapes or not shapes[key].attrs.get("ready", False):
+            raise StoreError(f"shape {shape_id} is not meshed in this store (shapes with data: "
+                             f"{_id_ranges(self.shape_ids())})")
+        return shapes[key]
+
     def _shape(self, shape_id: int):
-        """The group of a ready shape (looked up once); StoreError for one the store has not meshed."""
+        """The group of a ready shape (looked up and checked once); StoreError for one the store has
+        not meshed, or whose arrays are not what the schema implies (shape_problem)."""
         if shape_id not in self._groups:
-            shapes = self.root["shapes"]
-            key = str(shape_id)
-            if key not in shapes or not shapes[key].attrs.get("ready", False):
-                raise StoreError(f"shape {shape_id} is not meshed in this store (shapes with data: "
-                                 f"{_id_ranges(self.shape_ids())})")
-            self._groups[shape_id] = shapes[key]
+            group = self._group(shape_id)
+            problem = shape_problem(group, self.attrs)
+            if problem is not None:
+                raise StoreError(f"store {self.location}: shape {shape_id} is damaged: {problem}; {RECOMPUTE_HINT}")
+            self._groups[shape_id] = group
         return self._groups[shape_id]
+
+    def table_damage(self, shape_id: int) -> list[tuple[int | None, str]]:
+        """The damage that shows without reading any case: (None, …) when the shape's arrays are not
+        what the schema implies or its status array does not read, else its status codes out of range."""
+        group = self._group(shape_id)
+        problem = shape_problem(group, self.attrs)
+        if problem is not None:
+            return [(None, problem)]
+        try:
+            return status_damage(group["status"][...])
+        except (TypeError, AttributeError, NameError):
+            raise
+        except Exception as exc:
+            return [(None, f"its array 'status' is damaged: {_damage(exc)}")]
+
+    def shape_problem(self, shape_id: int) -> str | None:
+        """Why a ready shape's arrays are not what the schema implies, or None (module shape_problem)."""
+        return shape_problem(self._group(shape_id), self.attrs)
+
+    def status_codes(self, shape_id: int) -> np.ndarray:
+        """The shape's status array as stored, codes out of range included."""
+        return self._shape(shape_id)["status"][...]
 
     def _static(self, shape_id: int) -> dict:
         if shape_id not in self._cache:
@@ -789,7 +978,11 @@ class PairReader:
                        {"shape_id": shape_id, "coefficients": s["coefficients"].tolist()})
 
     def status(self, shape_id: int) -> np.ndarray:
-        return self._shape(shape_id)["status"][...]
+        """The shape's status codes; StoreError naming the first that is out of range."""
+        status = self.status_codes(shape_id)
+        for k, why in status_damage(status)[:1]:
+            raise _damaged_error(self.location, shape_id, k, why)
+        return status
 
     def case_params(self, shape_id: int) -> np.ndarray:
         """[n_cases, 4] the shape's case parameters (PARAM_NAMES order), done or not; no mesh is read."""
@@ -809,20 +1002,23 @@ class PairReader:
         if not 0 <= k < self.n_cases:
             raise StoreError(f"case {k} out of range 0..{self.n_cases - 1}")
         if status[k] != DONE:
-            raise StoreError(f"case {k} of shape {shape_id} is {STATUS_NAMES[int(status[k])]}, not done")
+            raise StoreError(f"case {k} of shape {shape_id} is {STATUS_NAMES.get(int(status[k]))}, not done")
         unloaded, loaded = read_case_chunks(self._shape(shape_id), shape_id, k, self.location)
         return self._case(shape_id, k, unloaded, loaded, self.stats(shape_id) if _stats is None else _stats)
 
     def _case(self, shape_id: int, k: int, unloaded, loaded, stats: np.ndarray) -> Case:
-        if not (np.all(np.isfinite(unloaded)) and np.all(np.isfinite(loaded))):
-            raise StoreError(f"case {k} of shape {shape_id} is marked done but its data are not finite")
+        why = missing_or_not_finite(unloaded, loaded)
+        if why is not None:
+            raise _damaged_error(self.location, shape_id, k, why)
         s = self._static(shape_id)
         return Case(shape_id, int(k), dict(zip(PARAM_NAMES, map(float, s["params"][k]))), unloaded, loaded,
                     s["ed_reference"], s["tets"], dict(zip(self.stat_names, map(float, stats[k]))))
 
-    def damaged(self, shape_ids=None) -> list[tuple[int, int, str]]:
-        """(shape, case, reason) of every done case whose chunks are damaged (reads them all)."""
-        return damaged_cases(self._shape, self.shape_ids() if shape_ids is None else shape_ids, self.status)
+    def damaged(self, shape_ids=None) -> list[tuple[int, int | None, str]]:
+        """(shape, case, reason) of all damage (shape_damage; reads every done case): case None when a
+        shape's arrays are not what the schema implies."""
+        return [(s, k, why) for s in (self.shape_ids() if shape_ids is None else shape_ids)
+                for k, why in shape_damage(self._group(s), self.attrs)]
 
     def iter_done(self, shape_ids=None):
         """Every done case, shape by shape, each shape's cases read one stored object at a time
@@ -885,11 +1081,15 @@ def export_case(location, shape_id: int, k: int, out, geometry: str = "unloaded"
 
     from .meshfiles import _format_of, atomic_write
 
-    reader = PairReader(location)
-    mesh = case_to_meshio(reader, shape_id, k, geometry)
+    if geometry not in ("unloaded", "loaded"):
+        raise ValueError("geometry must be 'unloaded' or 'loaded'")
+    with reading_store(location):
+        reader = PairReader(location)
+        mesh = case_to_meshio(reader, shape_id, k, geometry)
+        params = dict(zip(PARAM_NAMES, map(float, reader.case_params(shape_id)[k])))
     out = Path(out)
     atomic_write(out, lambda tmp: meshio.write(tmp, mesh, file_format=_format_of(out)))
-    return reader.case(shape_id, k).params
+    return params
 
 
 # --------------------------------------------------------------------------- summary (heartctl status)
@@ -910,7 +1110,9 @@ def _percentiles(values: np.ndarray) -> dict | None:
 
 def summarize(location, storage_options: dict | None = None) -> dict:
     """Counts by status, failure reasons grouped, throughput of the latest run, per-phase time
-    percentiles (s) and an ETA."""
+    percentiles (s) and an ETA. A case whose status cannot be known (its shape's arrays are not what
+    the schema implies, or its status code is out of range) counts as "unknown", and is named in
+    "table_damage" ({"shape", "case" (None: every case of the shape), "reason"})."""
     reader = PairReader(location, storage_options)
     attrs = reader.attrs
     grid = attrs["grid"]
@@ -919,15 +1121,22 @@ def summarize(location, storage_options: dict | None = None) -> dict:
     names = reader.stat_names
     col = {n: i for i, n in enumerate(names)}
     ready = set(reader.shape_ids())
-    counts = {"done": 0, "failed": 0, "pending": 0}
+    counts = {"done": 0, "failed": 0, "pending": 0, "unknown": 0}
     groups: dict[str, dict] = {}
     hosts: dict[str, int] = {}
     all_stats = []
+    table_damage = []  # {"shape", "case" (None: every case), "reason"}: status unknown
     for s in range(n_shapes):
         if s not in ready:
             counts["pending"] += K
             continue
-        status = reader.status(s)
+        damage = reader.table_damage(s)
+        table_damage.extend({"shape": s, "case": k, "reason": why} for k, why in damage)
+        if damage and damage[0][0] is None:
+            counts["unknown"] += K
+            continue
+        status = reader.status_codes(s)
+        counts["unknown"] += len(damage)
         stats = reader.stats(s)
         g = reader._shape(s)
         failures = g.attrs.get("failures", {})
@@ -972,6 +1181,7 @@ def summarize(location, storage_options: dict | None = None) -> dict:
     mesh_failures = attrs.get("mesh_failures", {})
     return {
         **counts,
+        "table_damage": table_damage,
         "total": total,
         "shapes": n_shapes,
         "shapes_ready": len(ready),

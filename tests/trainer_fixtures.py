@@ -55,13 +55,20 @@ def synthetic_unloaded(nodes: np.ndarray, pressure_mmhg: float, stiffness_pa: fl
 
 
 def make_tiny_store(path, shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0), stiffness=(100.0, 200.0),
-                    attrs: dict | None = None, shift_mm: float = 0.0) -> str:
+                    attrs: dict | None = None, shift_mm: float = 0.0, schema_version: int = 2) -> str:
     """Write a store with every case done (unloaded geometries moved by shift_mm along x); returns its
-    location."""
+    location. schema_version 1: a chunk per case and array, no case_layout attribute (local paths)."""
     from storage.store import DONE, PairStore, stats_row
 
     spec = tiny_spec(shapes, seed, pressures, stiffness)
-    store = PairStore.create(str(path), {**spec.store_attrs(), **(attrs or {})})
+    store = PairStore.create(str(path), {**spec.store_attrs(), **(attrs or {}),
+                                         **({"schema_version": 1} if schema_version == 1 else {})})
+    if schema_version == 1:
+        import zarr
+
+        root = zarr.open_group(str(path), mode="r+")
+        root.attrs.put({k: v for k, v in root.attrs.asdict().items() if k != "case_layout"})
+        store = PairStore.open(str(path))
     params = spec.case_params()
     for s in range(shapes):
         m = lv_mesh(s, seed)
