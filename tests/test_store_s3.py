@@ -347,3 +347,19 @@ def test_server_stopped_mid_sweep_then_rerun_resumes(s3, local_reference, monkey
     assert f"{CASES} done, 0 failed of {CASES} ({CASES - 2} done and 0 failed in this run" in r.stdout
     _assert_same_pairs(PairReader(url), local_reference)
     assert (PairReader(url).status(0) == DONE).all()
+
+
+def test_a_missing_object_on_s3_is_damage_that_retry_resets(s3):
+    """A done case's object deleted on the server (its shape's loaded shard): `status --verify` names
+    every case it held (exit 1), and --retry-damaged's reset marks them pending."""
+    import boto3
+
+    from trainer_fixtures import make_tiny_store
+
+    url = make_tiny_store(_url("damage/pairs.zarr"), shapes=1)
+    assert PairReader(url).damaged() == []
+    boto3.session.Session().client("s3").delete_object(Bucket=BUCKET, Key="damage/pairs.zarr/shapes/0/loaded/c/0/0/0")
+    r = runner.invoke(app, ["status", "--store", url, "--verify"])
+    assert r.exit_code == 1 and "damaged: shape 0 case 0: its loaded data are missing" in r.stdout, r.output
+    assert [k for _, k, _ in PairStore.open(url).reset_damaged([0])] == [0, 1, 2, 3]
+    assert (PairReader(url).status(0) == PENDING).all()

@@ -344,3 +344,30 @@ def test_retry_damaged_recomputes_only_the_damaged_case(ray_cluster, tmp_path):
     assert after.damaged() == [] and after.status(0).tolist() == [DONE] * 4
     assert np.array_equal(after.case(0, 0).unloaded, intact)  # the intact cases were not recomputed
     assert np.linalg.norm(after.case(0, 2).loaded - after.mesh(0).nodes, axis=1).max() < 1e-3
+
+
+def test_retry_damaged_recomputes_missing_data_and_a_shape_with_edited_metadata(ray_cluster, tmp_path):
+    """Shape 0's loaded shard deleted (its 4 cases' data missing) and shape 1's unloaded node count
+    edited: verify names both, a plain sweep refuses the store in one line, and one with retry_damaged
+    recomputes shape 0's cases and meshes shape 1 again (the same mesh: meshing is deterministic) and
+    solves its cases, after which every case reads back intact."""
+    from storage.store import StoreError
+    from test_store_damage import add_nodes_to
+    from trainer_fixtures import case_chunk, make_tiny_store
+
+    store = make_tiny_store(tmp_path / "t.zarr", shapes=2)
+    reader = PairReader(store)
+    mesh1 = reader.mesh(1)
+    case_chunk(store, 0, "loaded", 0)[0].unlink()
+    add_nodes_to(store, 1)
+    found = PairReader(store).damaged()
+    assert [(s, k) for s, k, _ in found] == [(0, 0), (0, 1), (0, 2), (0, 3), (1, None)]
+    spec_ = SweepSpec.from_attrs(reader.attrs)
+    with pytest.raises(StoreError, match=r"shape 1 is damaged: its array 'unloaded' has shape"):
+        run_sweep(spec_, store, progress=False)
+
+    report = run_sweep(spec_, store, progress=False, retry_damaged=True)
+    assert report.damaged_reset == [(0, 0), (0, 1), (0, 2), (0, 3), (1, None)] and report.done == 8
+    after = PairReader(store)
+    assert after.damaged() == [] and [len(after.done_cases([s])) for s in (0, 1)] == [4, 4]
+    assert np.array_equal(after.mesh(1).nodes, mesh1.nodes) and np.array_equal(after.mesh(1).tets, mesh1.tets)
