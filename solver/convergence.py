@@ -11,11 +11,12 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError
 from .lv import displacement_at_dofs, inverse_solve, refined_unloaded
 from .meshing import mesh_lv
@@ -66,6 +67,14 @@ def parse_hierarchies(text: str) -> tuple[Hierarchy, ...]:
     return tuple(out)
 
 
+def parse_quad_degrees(text: str) -> tuple[int, ...]:
+    """"2,4,5,7" → (2, 4, 5, 7); "" → () (no quadrature study)."""
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"quadrature degrees are integers separated by commas, got {text!r}") from None
+
+
 @dataclass(frozen=True)
 class ConvergenceSpec:
     shapes: tuple[str, ...] = ("mean", "minus2", "plus2")
@@ -76,6 +85,10 @@ class ConvergenceSpec:
     presets: tuple[str, ...] = ("fast", "accurate")
     base: str = "sliding"
     fibres: str = "laplace"
+    # cell quadrature degrees of the quadrature study (each preset on levels 0 and 1 of every mesh);
+    # empty: no study. Each preset's own degree joins the list, and one more row per level raises the
+    # facet degree to the list's highest.
+    quad_degrees: tuple[int, ...] = (2, 4, 5, 7)
 
     def validate(self) -> "ConvergenceSpec":
         for name in self.shapes:
@@ -88,6 +101,9 @@ class ConvergenceSpec:
         for h in self.hierarchies:
             if h.levels < 1 or h.target_nodes < 50:
                 raise ValueError(f"hierarchy {h.name}: needs ≥ 1 refinement level and ≥ 50 nodes")
+        for q in self.quad_degrees:
+            if not 1 <= q <= 8:
+                raise ValueError(f"quadrature degree {q}: the tetrahedron rules go from 1 to 8")
         return self
 
 
@@ -106,8 +122,8 @@ class LevelSolve:
     displacement: np.ndarray | None = field(repr=False, default=None)  # [dofs, 3] u = x − X of the solve's element
 
 
-def unload_at_level(ed_mesh: TetMesh, params: CaseParameters, preset: str, level: int, base: str = "sliding",
-                    fibres: str = "laplace", below: LevelSolve | None = None) -> LevelSolve:
+def unload_at_level(ed_mesh: TetMesh, params: CaseParameters, preset: str | Fidelity, level: int,
+                    base: str = "sliding", fibres: str = "laplace", below: LevelSolve | None = None) -> LevelSolve:
     """Inverse FE on `ed_mesh` refined `level` times: cold, as `heartctl unload --method fe`, or, given
     the same preset's answer one level `below`, started from it interpolated onto this level's nodes
     (the same tolerance, fewer updates: used for the finest, most expensive solves)."""
@@ -188,10 +204,11 @@ def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progre
     """Every (shape, case, hierarchy, preset, level) unloaded and scored. Returns {"rows": per
     solve, "orders": per (shape, case, hierarchy, preset): the differences of its levels, the
     observed order (≥ 3 levels) and its finest level's estimated error; the accurate entries give
-    the reference's own error}."""
+    the reference's own error, "quadrature": per preset, quadrature variant and level (levels 0 and
+    1) its quadrature error and its error against the reference (`_quadrature_rows`)}."""
     spec.validate()
     cache = SolveCache(cache_dir)
-    rows, orders = [], []
+    rows, orders, quadrature = [], [], []
     order_of = {}  # (shape, case, preset) → observed mean order, from the deepest hierarchy
     for shape_name in spec.shapes:
         shape = convergence_shape(shape_name)
@@ -238,7 +255,90 @@ def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progre
                     entry["finest_error_mean_mm"] = richardson_error(diffs[-1]["mean_mm"], p)
                     entry["finest_error_max_mm"] = richardson_error(diffs[-1]["max_mm"], p)
                     orders.append(entry)
-    return {"spec": _spec_dict(spec), "solver": cache.digest, "rows": rows, "orders": orders}
+                if spec.quad_degrees:
+                    quadrature += _quadrature_rows(spec, cache, shape_name, case, hierarchy, ed, solves, progress)
+    return {"spec": _spec_dict(spec), "solver": cache.digest, "rows": rows, "orders": orders,
+            "quadrature": quadrature}
+
+
+@dataclass(frozen=True)
+class QuadratureVariant:
+    """A preset with its cell (and facet) quadrature degree replaced."""
+
+    preset: str
+    quad_degree: int
+    facet_quad_degree: int
+
+    @property
+    def fidelity(self) -> Fidelity:
+        return replace(get_fidelity(self.preset), quad_degree=self.quad_degree,
+                       facet_quad_degree=self.facet_quad_degree)
+
+    @property
+    def is_preset(self) -> bool:
+        fid = get_fidelity(self.preset)
+        return (fid.quad_degree, fid.facet_quad_degree) == (self.quad_degree, self.facet_quad_degree)
+
+    @property
+    def name(self) -> str:
+        return f"{self.preset}-q{self.quad_degree}f{self.facet_quad_degree}"
+
+
+def quadrature_variants(preset: str, quad_degrees: tuple[int, ...]) -> list[QuadratureVariant]:
+    """The preset at each cell degree of `quad_degrees` and its own (its facet degree kept), then
+    its own cell degree with the facet degree raised to the highest listed; the last cell-degree
+    variant (the highest) is the quadrature-converged answer the others are scored against."""
+    fid = get_fidelity(preset)
+    cells = sorted(set(quad_degrees) | {fid.quad_degree})
+    out = [QuadratureVariant(preset, q, fid.facet_quad_degree) for q in cells]
+    top_facet = max(max(quad_degrees), fid.facet_quad_degree)
+    if top_facet != fid.facet_quad_degree:
+        out.insert(0, QuadratureVariant(preset, fid.quad_degree, top_facet))
+    return out
+
+
+def _quadrature_rows(spec: ConvergenceSpec, cache: SolveCache, shape_name: str, case: str, hierarchy: Hierarchy,
+                     ed: TetMesh, solves: dict[str, list[LevelSolve]], progress) -> list[dict]:
+    """Each preset at each quadrature variant on levels 0 and 1 of one mesh. Per answer: its
+    difference from the highest cell degree on the same mesh (the quadrature error alone) and from
+    the convergence reference (the finest level of `accurate`: the error against an answer
+    converged in h and, at the degree chosen for `accurate`, in quadrature). Level-1 variants start
+    from the preset's own level-0 answer (†)."""
+    params = CASES[case]
+    reference = solves["accurate"][-1]
+    rows = []
+    for preset in spec.presets:
+        variants = quadrature_variants(preset, spec.quad_degrees)
+        for level in range(min(hierarchy.levels, 1) + 1):
+            answers = {}
+            for v in variants:
+                if v.is_preset:
+                    answers[v] = solves[preset][level]
+                    continue
+                key = (f"{shape_name}_{case}_{hierarchy.name}{ed.n_nodes}_{v.name}_L{level}_"
+                       f"{spec.base}_{spec.fibres}")
+                s = cache.get(key)
+                if s is None:
+                    below = solves[preset][0] if level else None
+                    s = unload_at_level(ed, params, v.fidelity, level, spec.base, spec.fibres, below)
+                    cache.put(key, s)
+                    if progress:
+                        progress(f"{shape_name:>6} {case:>4} {hierarchy.name:>9} {v.name:>14} level {level}: "
+                                 f"{s.nodes:>6} nodes, {s.wall_s:7.1f} s" + (f", FAILED {s.failed}" if s.failed else ""))
+                answers[v] = s
+            top = answers[max((v for v in variants if v.facet_quad_degree == get_fidelity(preset).facet_quad_degree),
+                              key=lambda v: v.quad_degree)]
+            for v, s in answers.items():
+                row = {"shape": shape_name, "case": case, "hierarchy": hierarchy.name, "preset": preset,
+                       "quad_degree": v.quad_degree, "facet_quad_degree": v.facet_quad_degree,
+                       "is_preset": v.is_preset, "level": level, "nodes": s.nodes, "wall_s": s.wall_s,
+                       "warm": s.warm, "failed": s.failed or top.failed}
+                if not row["failed"]:
+                    row["quadrature"] = nodal_error(s.unloaded, top.unloaded, ed.nodes)
+                    row["converged"] = (None if s is reference
+                                        else nodal_error(s.unloaded, reference.unloaded, ed.nodes))
+                rows.append(row)
+    return rows
 
 
 def _spec_dict(spec: ConvergenceSpec) -> dict:
@@ -280,7 +380,36 @@ def markdown_report(result: dict, header: str = "") -> str:
         lines.append(f"| {o['shape']} | {o['case']} | {o['hierarchy']} | {o['preset']} | {diffs} | "
                      f"{_fmt(o['order_mean'], 2)} | {_fmt(o['order_max'], 2)} | "
                      f"{_fmt(o['finest_error_mean_mm'], 4)} ({_fmt(o['finest_error_max_mm'], 4)}) |")
+    if result.get("quadrature"):
+        lines += ["", *quadrature_markdown(result["quadrature"])]
     return "\n".join(lines) + "\n"
+
+
+def quadrature_markdown(rows: list[dict]) -> list[str]:
+    """The quadrature study as Markdown lines: per preset, degree and level, the quadrature error
+    (against the highest cell degree on the same mesh) and the error against the converged answer."""
+    lines = ["## Convergence in quadrature", "",
+             "Each preset with its cell (q) and facet (f) quadrature degrees changed, on a mesh (level 0) and its "
+             "uniform refinement (level 1). *Quadrature error*: against the same preset, mesh and level at the "
+             "highest cell degree. *Against converged*: against the reference above (the finest `accurate` "
+             "answer). Mean (max) nodal distance of the unloaded geometry, mm; apex: the lowest "
+             f"{APEX_FRACTION:.0%} of the height. Preset's own degrees in bold; † started from level 0's answer.", "",
+             "| shape | case | mesh | preset | q / f | level | nodes | time s | quadrature error | apex | against converged | apex |",
+             "| --- | --- | --- | --- | --- | ---: | ---: | ---: | --- | ---: | --- | ---: |"]
+    for r in rows:
+        qf = f"{r['quad_degree']} / {r['facet_quad_degree']}"
+        qf = f"**{qf}**" if r["is_preset"] else qf
+        head = (f"| {r['shape']} | {r['case']} | {r['hierarchy']} | {r['preset']} | {qf} | {r['level']} | "
+                f"{r['nodes']} | {r['wall_s']:.1f}{' †' if r['warm'] else ''} | ")
+        if r["failed"]:
+            lines.append(head + f"failed: {r['failed']} | | | |")
+            continue
+        q, c = r["quadrature"], r["converged"]
+        conv = ("reference", "") if c is None else (f"{_fmt(c['mean_mm'], 4)} ({_fmt(c['max_mm'], 3)})",
+                                                    _fmt(c["apex_mean_mm"], 4))
+        lines.append(head + f"{_fmt(q['mean_mm'], 4)} ({_fmt(q['max_mm'], 4)}) | {_fmt(q['apex_mean_mm'], 4)} | "
+                     f"{conv[0]} | {conv[1]} |")
+    return lines
 
 
 def plot_report(result: dict, path: Path) -> None:

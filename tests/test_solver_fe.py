@@ -261,7 +261,7 @@ def test_fibres_follow_the_reference_geometry_in_the_inverse(coarse_lv):
     params = CaseParameters(6.0, 300.0, 70.0, -60.0)
     inv = inverse_solve(coarse_lv, params, "fast")
     unloaded = coarse_lv.with_nodes(inv.unloaded_nodes)
-    lam = cell_quadrature(unloaded.nodes, unloaded.tets, 1, 1).lam
+    lam = cell_quadrature(unloaded.nodes, unloaded.tets, 1, get_fidelity("fast").quad_degree).lam
     frames = fibre_frames(unloaded, 70.0, -60.0, lam)
     problem = lv_problem(unloaded, params, "fast")
     np.testing.assert_allclose(problem.frames, frames)
@@ -289,7 +289,7 @@ def test_heartfem_base_removes_rigid_motion_over_the_wall(coarse_lv):
     params = CaseParameters(8.0, 150.0, 60.0, -60.0)
     result = forward_solve(coarse_lv, params, "fast", "heartfem", fibres="heartfem")
     np.testing.assert_allclose(result.displacement[coarse_lv.base_nodes(), 2], 0.0, atol=1e-12)
-    cq = cell_quadrature(coarse_lv.nodes, coarse_lv.tets, 1, 1)
+    cq = cell_quadrature(coarse_lv.nodes, coarse_lv.tets, 1, get_fidelity("fast").quad_degree)
     u = np.einsum("eai,aq->eqi", result.displacement[coarse_lv.tets], cq.lam)
     X = np.einsum("eai,aq->eqi", coarse_lv.nodes[coarse_lv.tets], cq.lam)
     scale = np.einsum("eq,eq->", np.linalg.norm(u, axis=-1), cq.dV)
