@@ -74,8 +74,11 @@ def _input_errors():
     return (MeshError, ParameterError, ValueError, FileNotFoundError, IsADirectoryError)
 
 
-def _solver_threads(threads: int) -> None:
-    """Threads for the sparse solver and BLAS (set before they load); exit 2 below 1."""
+def _solver_threads(threads: int | None) -> None:
+    """Threads for the sparse solver and BLAS (set before they load); None leaves the environment's;
+    exit 2 below 1."""
+    if threads is None:
+        return
     if threads < 1:
         fail(f"--threads must be ≥ 1, got {threads}")
     for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
@@ -151,6 +154,8 @@ FidelityOpt = typer.Option(FidelityName.accurate, "--fidelity", help="Solver pre
 BaseOpt = typer.Option(Base.sliding, "--base", help="Base condition: sliding (z fixed), clamped, spring (sliding + epicardial normal spring), or heartfem (spring, rigid motions removed over the wall about the coordinate origin: the original paper's pipeline; mesh placement matters).")
 FibresOpt = typer.Option("laplace", "--fibres", help="Fibre rule: laplace (ours) | heartfem (the original pipeline's distance rule).")
 UnitsOpt = typer.Option(Units.mm, "--units", help="Length unit of the input mesh; the output uses it too.")
+ThreadsOpt = typer.Option(None, "--threads", help="Threads for the sparse solver and BLAS (default: the "
+                          "MKL/OMP_NUM_THREADS environment, else all cores).")
 RotateDegOpt = typer.Option(0.0, "--rotate-deg", help="Augment: turn each training graph about the long axis by a "
                                                       "random angle in ±DEG (exact new FE pairs; 0 = off).")
 ScalePctOpt = typer.Option(0.0, "--scale-pct", help="Augment: scale each training graph about its base by a random "
@@ -188,9 +193,13 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
          nodes: int = typer.Option(800, "--nodes", help="Target node count, 50–200,000 (gmsh lands within ~15 % of it)."),
          seed: int = typer.Option(0, "--seed", help="Shape-model seed."),
          endo: float = EndoOpt, epi: float = EpiOpt,
-         units: Units = typer.Option(Units.mm, "--units", help="Length unit of the written mesh.")):
+         units: Units = typer.Option(Units.mm, "--units", help="Length unit of the written mesh."),
+         fidelity: FidelityName = typer.Option(FidelityName.accurate, "--fidelity", help="Whose fibre field the cell "
+                                               "data `fibre`/`sheet` hold (fast: P1 φ; accurate, reference: P2 φ); "
+                                               "`fibre_p1`/`fibre_p2` hold both.")):
     """Write the ED mesh of a shape-model member with surface tags and fibre fields."""
-    from solver.fibres import fibre_frames, helix_angle_at_nodes, transmural_coordinate
+    from solver.fibres import centroid_frames, helix_angle_at_nodes, transmural_coordinate
+    from solver.fidelity import get_fidelity
     from solver.meshing import check_node_target, mesh_lv
     from solver.shape_model import lv_shape
 
@@ -203,9 +212,13 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
         shape_def = lv_shape(shape, seed)
         lv = mesh_lv(shape_def, nodes)
         phi = transmural_coordinate(lv)
-        frames = fibre_frames(lv, endo, epi, np.full((4, 1), 0.25), phi)[:, 0]
+        frames = {order: centroid_frames(lv, endo, epi, order) for order in (1, 2)}
+        own = frames[get_fidelity(fidelity.value).displacement_order]
+        cell_data = {"fibre": own[:, :, 0], "sheet": own[:, :, 1]}
+        for order, f in frames.items():
+            cell_data |= {f"fibre_p{order}": f[:, :, 0], f"sheet_p{order}": f[:, :, 1]}
         _write_mesh(out, lv, point_data={"transmural": phi, "helix_angle_deg": helix_angle_at_nodes(lv, endo, epi, phi)},
-                   cell_data={"fibre": frames[:, :, 0], "sheet": frames[:, :, 1]}, units=units.value)
+                   cell_data=cell_data, units=units.value)
     except _input_errors() as exc:
         fail(str(exc))
     info = lv.info
@@ -219,8 +232,9 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
           pressure: float = PressureOpt, stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
           out: Path = typer.Option(..., "-o", "--out", help="Output: deformed mesh with `displacement`."),
           fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
-          fibres: str = FibresOpt):
+          fibres: str = FibresOpt, threads: int = ThreadsOpt):
     """Forward inflation of an unloaded mesh to the ED pressure."""
+    _solver_threads(threads)
     from solver.forward import SolveError
     from solver.lv import forward_solve
 
@@ -321,8 +335,10 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
            tolerance_mm: float = typer.Option(None, "--tolerance-mm", help="--method auto: the p95 nodal error against "
                                               "the converged solution you accept, mm (bench trade measured it)."),
            check: bool = typer.Option(False, "--check", help="--method gnn|hybrid|auto: inflate the answer again (one "
-                                      "forward solve at --fidelity) and print how far it lands from the ED mesh.")):
+                                      "forward solve at --fidelity) and print how far it lands from the ED mesh."),
+           threads: int = ThreadsOpt):
     """Unload a user's ED mesh: the stress-free geometry that inflates back onto it."""
+    _solver_threads(threads)
     from trainer.unload import UnloadRequest
 
     try:
@@ -348,8 +364,10 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
 @app.command()
 def verify(problem: Problem = typer.Option(Problem.all, "--problem", help="Land et al. 2015 problem."),
            fidelity: FidelityName = FidelityOpt,
-           as_json: bool = typer.Option(False, "--json", help="One JSON object per problem on stdout.")):
+           as_json: bool = typer.Option(False, "--json", help="One JSON object per problem on stdout."),
+           threads: int = ThreadsOpt):
     """Run the Land et al. (2015) verification problems and compare with the published values."""
+    _solver_threads(threads)
     from solver.benchmarks import land1, land2
 
     if fidelity is FidelityName.reference:

@@ -114,6 +114,12 @@ def fibre_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, lam
     return np.stack([f, sheet, n], axis=-1)
 
 
+def centroid_frames(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: float, order: int) -> np.ndarray:
+    """One (f, s, n) frame per tet [m, 3, 3], the fibre field of the given order (1: `fast`'s P1 φ;
+    2: `accurate`'s and `reference`'s P2 φ) at the tet's centroid: what a mesh file carries per cell."""
+    return fibre_frames(mesh, helix_endo_deg, helix_epi_deg, np.full((4, 1), 0.25), order=order)[:, 0]
+
+
 def _quadratic_wall_directions(mesh: TetMesh, lam: np.ndarray):
     """φ [m, nq] and unit t, e_l, e_c [m, nq, 3] at the points lam [4, nq] of every tet, from P2 φ."""
     dofmap, phi = _laplace_dofs(mesh, 2)

@@ -1,6 +1,7 @@
 """heartctl mesh / solve / unload / verify: round trip through files, units, and every bad input
 (one-line error, exit code 2, no output file); a solve that fails exits 1 with its reason."""
 import json
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -36,6 +37,40 @@ def test_mesh_command_writes_tags_and_fibres(lv_file):
     lv = read_mesh(lv_file)
     assert len(lv.endo) and len(lv.epi) and len(lv.base)
     assert m.point_data["helix_angle_deg"].max() == pytest.approx(60.0)
+
+
+def test_mesh_file_fibres_are_the_field_the_preset_solves_with(lv_file, tmp_path):
+    """`fibre`/`sheet` hold the chosen preset's field at each tet's centroid (default accurate: P2 φ),
+    `fibre_p1`/`fibre_p2` both fields; the two differ by degrees, so the names matter."""
+    m = meshio.read(lv_file)
+    cells = {k: v[0] for k, v in m.cell_data.items()}
+    np.testing.assert_array_equal(cells["fibre"], cells["fibre_p2"])
+    np.testing.assert_array_equal(cells["sheet"], cells["sheet_p2"])
+    for name in ("fibre_p1", "fibre_p2", "sheet_p1", "sheet_p2"):
+        np.testing.assert_allclose(np.linalg.norm(cells[name], axis=1), 1.0, atol=1e-6)
+    angle = np.degrees(np.arccos(np.clip(np.abs((cells["fibre_p1"] * cells["fibre_p2"]).sum(axis=1)), 0, 1)))
+    assert 1.0 < angle.mean() < 20.0
+    fast = tmp_path / "fast.vtu"
+    r = run("mesh", "--shape", 4, "--nodes", 250, "--fidelity", "fast", "-o", fast)
+    assert r.exit_code == 0, r.output
+    np.testing.assert_array_equal(meshio.read(fast).cell_data["fibre"][0], cells["fibre_p1"])
+
+
+def test_solver_threads_are_set_or_refused_in_one_line(lv_file, tmp_path, monkeypatch):
+    """`solve`, `unload` and `verify` take --threads: it sets the sparse solver's and BLAS's thread
+    variables; below 1 is one line, exit 2, nothing written."""
+    for var in ("MKL_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        monkeypatch.setenv(var, "7")
+    out = tmp_path / "ed.vtu"
+    r = run("solve", lv_file, "--pressure", 8, "--stiffness", 150, "--fidelity", "fast", "--threads", 1, "-o", out)
+    assert r.exit_code == 0, r.output
+    assert os.environ["MKL_NUM_THREADS"] == os.environ["OMP_NUM_THREADS"] == "1"
+    for command in (("solve", lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "x.vtu"),
+                    ("unload", lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "x.vtu"),
+                    ("verify", "--problem", "land1")):
+        r = run(*command, "--threads", 0)
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1 and "--threads" in r.output, r.output
+    assert not (tmp_path / "x.vtu").exists()
 
 
 def test_solve_then_unload_round_trip_in_cm(lv_file, tmp_path):
