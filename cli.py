@@ -778,11 +778,15 @@ def _train_in_process(cfg, run_dir: Path, placement) -> dict:
     """trainer.launch.train_in_process, its refusals and Ctrl-C (or SIGTERM) as one line."""
     from trainer.launch import train_in_process
 
+    from trainer.checkpoint import DiskFullError
+
     stop_on_sigterm()
     try:
         return train_in_process(cfg, run_dir, placement, log=lambda line: typer.echo(line, err=True))
     except _trainer_errors() as exc:
         fail(str(exc))
+    except DiskFullError as exc:  # a failure, not bad input: exit 1
+        fail(str(exc), code=1)
     except KeyboardInterrupt:
         fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
 
@@ -791,6 +795,7 @@ def _train_on_ray(cfg, run_dir: Path, placement, where) -> dict:
     """Ray Train within a ray_session (a local Ray, or the cluster joined): refusals, Ray that will not
     start and Ctrl-C exit 2 (130) in one line, a training that fails exits 1."""
     from orchestrator.ray_session import RayConnectError, RayStartError, ray_session
+    from trainer.checkpoint import DiskFullError
     from trainer.ray_local import local_ray_options
     from trainer.ray_train import check_ray_resources, train_with_ray
 
@@ -806,6 +811,8 @@ def _train_on_ray(cfg, run_dir: Path, placement, where) -> dict:
         fail(str(exc))
     except KeyboardInterrupt:
         fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
+    except DiskFullError as exc:
+        fail(str(exc), code=1)
     except Exception as exc:  # Ray's TrainingFailedError and the like: not bad input
         text = str(exc).strip()
         fail(f"training failed: {text.splitlines()[0] if text else type(exc).__name__}", code=1)

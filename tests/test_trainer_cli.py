@@ -806,3 +806,62 @@ def test_fine_tuning_refuses_another_network_or_a_damaged_parent(trained, tmp_pa
     assert_bad_input(run(*common, "--init-from", tmp_path / "nowhere"), "--init-from", "no checkpoint at")
     assert_bad_input(run(*common, "--init-from", trained["run"], "--config", "pca"), "--init-from", "PCA")
     assert not (tmp_path / "ft").exists()
+
+
+def test_a_full_disk_while_saving_a_checkpoint_is_one_line_and_the_rerun_resumes(trained, tmp_path, monkeypatch):
+    """ENOSPC while the second epoch's checkpoint is written (the failure injected where the bytes reach
+    the file): exit 1, one line naming the run's folder and the way to resume, no temporary file left,
+    the first epoch's checkpoint intact; the same command then resumes from it."""
+    import builtins
+    import errno
+
+    run_dir = tmp_path / "run"
+    args = ("train", "--store", trained["store"], "--run-dir", run_dir, "--no-ray", "--batch-size", 8, "--device", "cpu")
+    assert run(*args, "--epochs", 1).exit_code == 0
+    real_open = builtins.open
+
+    def full_disk_open(file, mode="r", *a, **kw):
+        if "w" in mode and str(file).startswith(str(run_dir / ".checkpoint.")):
+            handle = real_open(file, mode, *a, **kw)
+            handle.close()
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_open(file, mode, *a, **kw)
+
+    monkeypatch.setattr(builtins, "open", full_disk_open)
+    r = run(*args, "--epochs", 2)
+    monkeypatch.setattr(builtins, "open", real_open)
+    assert r.exit_code == 1 and isinstance(r.exception, SystemExit), r.output
+    errors = [ln for ln in r.output.splitlines() if ln.startswith("heartctl: error:")]
+    assert errors == [f"heartctl: error: disk full saving a checkpoint in {run_dir} (No space left on device); the run "
+                      f"keeps its last checkpoint: free space and rerun the same command to resume from it"], r.output
+    assert "Traceback" not in r.output
+    assert sorted(p.name for p in run_dir.iterdir() if p.name.startswith(".")) == []
+    assert load_run(run_dir)["epoch"] == 1
+    again = run(*args, "--epochs", 2)
+    assert again.exit_code == 0, again.output
+    assert load_run(run_dir)["epoch"] == 2
+
+
+def test_a_full_disk_in_a_ray_train_failure_is_found_and_named(tmp_path):
+    """Ray Train wraps a worker's error (or its own, copying a reported checkpoint into the run's
+    storage): a DiskFullError or an OSError ENOSPC anywhere in that chain becomes the one line."""
+    import errno
+
+    from trainer.checkpoint import DiskFullError
+    from trainer.ray_train import worker_disk_full
+
+    class WorkerGroupError(Exception):
+        def __init__(self, failures):
+            super().__init__("Training failed due to worker errors")
+            self.worker_failures = failures
+
+    try:
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError as exc:
+            raise RuntimeError("persisting the checkpoint failed") from exc
+    except RuntimeError as exc:
+        wrapped = WorkerGroupError({0: exc})
+    found = worker_disk_full(wrapped, tmp_path)
+    assert isinstance(found, DiskFullError) and f"disk full saving a checkpoint in {tmp_path}" in str(found)
+    assert worker_disk_full(WorkerGroupError({0: ValueError("other")}), tmp_path) is None

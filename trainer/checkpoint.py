@@ -4,7 +4,9 @@ A SHA-256 of every tensor is recorded when saving and checked when loading: torc
 uncompressed and does not check them, so a flipped bit would otherwise load as a different network."""
 from __future__ import annotations
 
+import errno
 import hashlib
+import io
 import math
 import os
 from pathlib import Path
@@ -20,6 +22,29 @@ VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 REQUIRED = ("format", "version", "kind", "train_config", "normalisation", "fingerprint", "split", "epoch")
 DIGEST_KEY = "tensors_sha256"
+DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+class DiskFullError(RuntimeError):
+    """No space (or quota) left where a checkpoint is saved: a failure of the run, not bad input; the
+    checkpoint saved before it is intact. The message is one line."""
+
+
+def disk_full_error(folder, exc: BaseException | None = None) -> DiskFullError:
+    why = f" ({os.strerror(exc.errno)})" if isinstance(exc, OSError) and exc.errno else ""
+    return DiskFullError(f"disk full saving a checkpoint in {folder}{why}; the run keeps its last checkpoint: free "
+                         f"space and rerun the same command to resume from it")
+
+
+def is_disk_full(exc: BaseException | None) -> bool:
+    """Whether exc, or an exception it was raised from, is an OSError ENOSPC or EDQUOT."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _tensors(value, path: str = ""):
@@ -48,12 +73,26 @@ def tensors_digest(state: dict) -> str:
 
 def save_checkpoint(path: str | os.PathLike, state: dict) -> None:
     """Write `state` (with format/version and the tensors' digest added) to `path` via a temporary
-    file and a rename."""
+    file and a rename. torch.save serialises into memory and Python writes the bytes, so that a full
+    disk is an OSError with its errno (torch's own file writer says "unexpected pos"): DiskFullError
+    (one line), the temporary file removed and the checkpoint before it intact."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     full = {"format": FORMAT, "version": VERSION, **state}
     full[DIGEST_KEY] = tensors_digest(full)
-    atomic_write(path, lambda tmp: torch.save(full, tmp))
+    buffer = io.BytesIO()
+    torch.save(full, buffer)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(path, lambda tmp: _write_bytes(tmp, buffer.getbuffer()))
+    except OSError as exc:
+        if exc.errno not in DISK_FULL_ERRNOS:
+            raise
+        raise disk_full_error(path.parent, exc) from None
+
+
+def _write_bytes(path, data) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict:

@@ -10,8 +10,8 @@ import tempfile
 import uuid
 from pathlib import Path
 
-from .checkpoint import (CHECKPOINT_NAME, check_resume_parts, load_checkpoint, remove_stale_temporaries,
-                         run_checkpoint_path, save_checkpoint)
+from .checkpoint import (CHECKPOINT_NAME, DiskFullError, check_resume_parts, disk_full_error, is_disk_full,
+                         load_checkpoint, remove_stale_temporaries, run_checkpoint_path, save_checkpoint)
 from .config import TrainConfig, TrainerError, TrainingDiverged
 
 # A refusal that every rank reaches alike (the training loss diverged in the same epoch; the store
@@ -37,21 +37,35 @@ def check_ray_resources(gpus: int, workers: int, address: str | None) -> None:
 
 def worker_trainer_error(exc: BaseException) -> TrainerError | None:
     """The TrainerError a Ray Train worker raised (bad input found on the worker), looked up by type
-    in Ray's failure: a WorkerGroupError's worker_failures (lowest rank first), each wrapping the
-    worker's own exception, and the exceptions they were raised from. None when there is none."""
+    in Ray's failure (_failure_chain). None when there is none."""
+    return next((e for e in _failure_chain(exc) if isinstance(e, TrainerError)), None)
+
+
+def worker_disk_full(exc: BaseException, run_dir) -> DiskFullError | None:
+    """A full disk (ENOSPC, EDQUOT) anywhere in Ray's failure, as the DiskFullError a worker raised or
+    one naming run_dir (Ray Train's own copy of a reported checkpoint); None when there is none."""
+    for e in _failure_chain(exc):
+        if isinstance(e, DiskFullError):
+            return e
+        if is_disk_full(e):
+            return disk_full_error(run_dir, e)
+    return None
+
+
+def _failure_chain(exc: BaseException):
+    """Every exception in Ray's failure, breadth first: a WorkerGroupError's worker_failures (lowest
+    rank first), each wrapping the worker's own exception, and the exceptions they were raised from."""
     seen, todo = set(), [exc]
     while todo:
         e = todo.pop(0)
         if e is None or id(e) in seen:
             continue
         seen.add(id(e))
-        if isinstance(e, TrainerError):
-            return e
+        yield e
         failures = getattr(e, "worker_failures", None) or {}
         todo += [failures[rank] for rank in sorted(failures)]
         todo += [getattr(e, name, None) for name in ("_base_exc", "cause", "controller_failure")]
         todo += [e.__cause__, e.__context__]
-    return None
 
 
 def serves_state_api() -> bool:
@@ -257,8 +271,8 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
         without_pg_cleaner(trainer)
     try:
         result = trainer.fit()
-    except TrainingFailedError as exc:  # a worker's bad-input error reaches the caller as itself
-        cause = worker_trainer_error(exc)
+    except TrainingFailedError as exc:  # a worker's bad input or full disk reaches the caller as itself
+        cause = worker_trainer_error(exc) or worker_disk_full(exc, run_dir)
         if cause is None:
             raise
         raise cause from None
