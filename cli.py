@@ -14,8 +14,17 @@ from trainer.config import CONFIG_HELP  # the trainer's one light module (no tor
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Unloaded LV geometry from the end-diastolic shape: FE data, training, evaluation.")
-bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks (print figures and ratios).")
+bench_app = typer.Typer(help="Benchmarks (print figures and ratios).")
 app.add_typer(bench_app, name="bench")
+
+
+@bench_app.callback(invoke_without_command=True)
+def bench_group(ctx: typer.Context) -> None:
+    """`heartctl bench` alone: one line naming the benchmarks, exit 2, like any command missing what it needs."""
+    if ctx.invoked_subcommand is None and not ctx.resilient_parsing:
+        names = ", ".join(ctx.command.list_commands(ctx))
+        typer.echo(f"heartctl: error: heartctl bench needs a benchmark: {names} (see heartctl bench --help)", err=True)
+        raise typer.Exit(2)
 
 
 class Units(str, Enum):
@@ -245,6 +254,7 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
         lv = _read_mesh(mesh_path, units.value)
     except _input_errors() as exc:
         fail(str(exc))
+    _warn_high_pressure(pressure)
     try:
         result = forward_solve(lv, params, fidelity.value, base.value, fibres=fibres)
     except SolveError as exc:
@@ -352,6 +362,7 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
         plan, choice = request.plan(lv.n_nodes)
     except _input_errors() as exc:
         fail(str(exc))
+    _warn_high_pressure(pressure)
     if choice is not None:
         _print_auto_choice(choice, tolerance_mm)
     result = _unload_mesh(lv, params, plan)
@@ -1201,12 +1212,20 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
         _print_sweep_report(report, store, retry_damaged, as_json)
 
 
-def _warn_high_pressures(high: list[float]) -> None:
+def _warn_high_pressures(high: list[float], flag: str = "--pressures") -> None:
+    """One warning line for pressures above end-diastolic ones (allowed: the solver decides)."""
     from solver.parameters import HIGHEST_ED_PRESSURE_MMHG
 
     if high:
-        typer.echo(f"warning: --pressures {', '.join(f'{p:g}' for p in high)} mmHg: end-diastolic pressures are "
+        typer.echo(f"warning: {flag} {', '.join(f'{p:g}' for p in high)} mmHg: end-diastolic pressures are "
                    f"0–{HIGHEST_ED_PRESSURE_MMHG:g} mmHg; such cases may take long and fail", err=True)
+
+
+def _warn_high_pressure(pressure: float) -> None:
+    """_warn_high_pressures for the one --pressure of solve and unload."""
+    from solver.parameters import HIGHEST_ED_PRESSURE_MMHG
+
+    _warn_high_pressures([pressure] if pressure > HIGHEST_ED_PRESSURE_MMHG else [], "--pressure")
 
 
 def _run_sweep(sweep, where, warm_start: bool, retry_damaged: bool, progress: bool):
@@ -1496,7 +1515,7 @@ def main() -> None:
     try:
         code = app(standalone_mode=False)
     except usage_errors as exc:
-        if type(exc).__name__ == "NoArgsIsHelpError":  # `heartctl bench` alone: the help is the answer
+        if type(exc).__name__ == "NoArgsIsHelpError":  # `heartctl` alone: the help is the answer
             typer.echo(exc.format_message(), err=True)
             sys.exit(2)
         where = exc.ctx.command_path if exc.ctx is not None else "heartctl"

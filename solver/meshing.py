@@ -22,10 +22,14 @@ def _gmsh_truncated_shell(endo_axes, epi_axes, centre_z: float, base_z: float, s
     """Mesh (ellipsoid(epi) − ellipsoid(endo)) ∩ {z ≤ base_z}; returns nodes, tets, tagged triangles."""
     import gmsh
 
-    gmsh.initialize(interruptible=False)
+    # the same mesh for the same input, whatever the user's ~/.gmshrc or ~/.gmsh-options and whatever
+    # runs beside it: no config files, and one thread everywhere (parallel surface meshing's order
+    # depends on the load)
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
+        for option in ("General.NumThreads", "Mesh.MaxNumThreads1D", "Mesh.MaxNumThreads2D", "Mesh.MaxNumThreads3D"):
+            gmsh.option.setNumber(option, 1)
         gmsh.model.add("lv")
         occ = gmsh.model.occ
         outer = occ.addSphere(0, 0, centre_z, 1.0)

@@ -474,3 +474,28 @@ def test_mesh_node_count_has_an_upper_limit(tmp_path):
     r = runner.invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--nodes", "300000", "--dry-run"])
     assert r.exit_code == 2 and "--nodes must be 50–200,000" in r.output, r.output
     assert not (tmp_path / "m.vtu").exists() and not (tmp_path / "s.zarr").exists()
+
+
+def test_bench_alone_is_one_line_naming_the_benchmarks():
+    r = run("bench")
+    assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+    assert r.output.startswith("heartctl: error: heartctl bench needs a benchmark: solver, corners") and "sweep" in r.output
+
+
+@pytest.mark.parametrize("command", ["solve", "unload"])
+def test_a_pressure_above_end_diastolic_is_warned_by_solve_and_unload(lv_file, tmp_path, monkeypatch, command):
+    """One warning line before the solve (the solve itself replaced by a failure here: the warning is
+    what is tested)."""
+    import solver.lv
+    from solver.forward import SolveError
+
+    def no_solve(*args, **kwargs):
+        raise SolveError("not solved in this test")
+
+    monkeypatch.setattr(solver.lv, "forward_solve", no_solve)
+    monkeypatch.setattr("cli._unload_mesh", lambda *a: no_solve())
+    r = run(command, lv_file, "--pressure", 200, "--stiffness", 150, "-o", tmp_path / "x.vtu")
+    assert r.output.splitlines()[0] == ("warning: --pressure 200 mmHg: end-diastolic pressures are 0–40 mmHg; such "
+                                        "cases may take long and fail"), r.output
+    quiet = run(command, lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "x.vtu")
+    assert "warning" not in quiet.output
