@@ -40,8 +40,6 @@ def _digests_here() -> list[str]:
     return lines
 
 
-@pytest.mark.xfail(strict=True, reason="solver/meshing.py: gmsh.initialize(readConfigFiles=False) and "
-                                       "Mesh.MaxNumThreads1D/2D/3D = 1 not applied yet")
 def test_concurrent_meshing_with_user_gmsh_settings_gives_the_same_mesh(tmp_path):
     home = tmp_path / "home"
     home.mkdir()
