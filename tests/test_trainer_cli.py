@@ -719,13 +719,31 @@ def test_evaluate_against_a_reference_store(trained, tmp_path):
     r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference", reference,
             "--no-plots", "--out", tmp_path / "eval2")
     assert r.exit_code == 0 and "vs converged (reference" in r.output, r.output
-    other_meshes = make_tiny_store(tmp_path / "seed1.zarr", shapes=4, seed=1, pressures=(8.0,), stiffness=(100.0,))
+    other_meshes = make_tiny_store(tmp_path / "seed1.zarr", shapes=4, seed=1, pressures=(8.0,), stiffness=(100.0,),
+                                   attrs={"fidelity": "reference"})
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
                          other_meshes, "--no-plots", "--out", tmp_path / "e3"), "another ED mesh")
-    other_grid = make_tiny_store(tmp_path / "p5.zarr", shapes=4, pressures=(5.0,), stiffness=(100.0,))
+    other_grid = make_tiny_store(tmp_path / "p5.zarr", shapes=4, pressures=(5.0,), stiffness=(100.0,),
+                                 attrs={"fidelity": "reference"})
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
                          other_grid, "--no-plots", "--out", tmp_path / "e4"), "none of the")
     assert not (tmp_path / "e3").exists() and not (tmp_path / "e4").exists()
+    assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
+                         trained["store"], "--no-plots", "--out", tmp_path / "e5"),
+                     "is of the 'fast' fidelity; --reference takes a store made with `heartctl generate --fidelity "
+                     "reference`")
+    assert not (tmp_path / "e5").exists()
+
+
+def test_a_reference_no_finer_than_the_labels_is_refused(tmp_path):
+    from trainer.config import TrainerError
+    from trainer.reference import check_reference_fidelity
+
+    check_reference_fidelity("r.zarr", "reference", "accurate")
+    with pytest.raises(TrainerError, match="no finer than the evaluated store's labels"):
+        check_reference_fidelity("r.zarr", "reference", "reference")
+    with pytest.raises(TrainerError, match="is of the 'accurate' fidelity"):
+        check_reference_fidelity("r.zarr", "accurate", "fast")
 
 
 def test_a_checkpoint_with_a_changed_weight_is_refused(trained, tmp_path):

@@ -12,11 +12,11 @@ from storage.store import PARAM_NAMES
 
 from .checkpoint import load_run
 from .config import TrainerError, check_device, describe_run
-from .data import MeshFeatures, check_fingerprint, read_store, store_fingerprint
+from .data import MeshFeatures, check_fingerprint, open_reader, read_store, store_fingerprint
 from .files import write_csv, write_json
 from .metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
 from .predict import Ensemble, Predictor
-from .reference import match_reference, reference_rows, reference_summary
+from .reference import check_reference_fidelity, match_reference, reference_rows, reference_summary
 
 SPLITS = ("test", "val", "train", "all")
 
@@ -74,6 +74,8 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
             raise TrainerError(f"store {store} has no done cases")
     ref_cases = matches = None
     if reference is not None:
+        check_reference_fidelity(str(reference), open_reader(reference).attrs.get("fidelity"),
+                                 cases.attrs.get("fidelity"))
         ref_cases = read_store(reference)
         matches = match_reference(cases, keys, ref_cases, str(reference))
     # the folder is made once store and run are known to match (no empty folder after a refusal), and
@@ -184,8 +186,6 @@ def _write_artefacts(out_dir: Path, write) -> list:
 
 def _error_map_vtu(out_dir: Path, store, key, pred_mm, err) -> list:
     from storage.meshfiles import write_mesh
-
-    from .data import open_reader
 
     try:
         mesh = open_reader(store).mesh(key[0])

@@ -14,6 +14,17 @@ from .metrics import aggregate, case_metrics
 REFERENCE_KEYS = ("md_mm", "hd_mm", "dsc_1mm", "dsc_01mm", "sd_mm", "max_mm")
 
 
+def check_reference_fidelity(location: str, reference_fidelity, labels_fidelity) -> None:
+    """TrainerError (one line) unless the reference store is of the `reference` fidelity and finer than
+    the evaluated store's labels: scored against a store no finer, the labels would look converged."""
+    if reference_fidelity != "reference":
+        raise TrainerError(f"reference store {location} is of the {reference_fidelity!r} fidelity; --reference takes "
+                           f"a store made with `heartctl generate --fidelity reference` (same --seed and --nodes)")
+    if labels_fidelity == "reference":
+        raise TrainerError(f"reference store {location} is no finer than the evaluated store's labels (both of the "
+                           f"'reference' fidelity); score against a finer reference, or evaluate without --reference")
+
+
 def match_reference(cases: StoreCases, keys: list, reference: StoreCases, location: str) -> dict:
     """{key of `cases` → key of `reference`} for the keys whose shape and parameters (P, C, θendo, θepi)
     the reference has. A matched shape must have the same ED mesh (node for node within
