@@ -201,12 +201,16 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
          out: Path = typer.Option(..., "-o", "--out", help="Output mesh file (.vtu or .vtk)."),
          nodes: int = typer.Option(800, "--nodes", help="Target node count, 50–200,000 (gmsh lands within ~15 % of it)."),
          seed: int = typer.Option(0, "--seed", help="Shape-model seed."),
+         shape_model: int = typer.Option(2, "--shape-model", help="Shape model version: 2 (the default, healthy and "
+                                         "diseased anatomy) or 1 (the ellipsoid family of stores made before it)."),
          endo: float = EndoOpt, epi: float = EpiOpt,
          units: Units = typer.Option(Units.mm, "--units", help="Length unit of the written mesh."),
          fidelity: FidelityName = typer.Option(FidelityName.accurate, "--fidelity", help="Whose fibre field the cell "
                                                "data `fibre`/`sheet` hold (fast: P1 φ; accurate, reference: P2 φ); "
                                                "`fibre_p1`/`fibre_p2` hold both.")):
-    """Write the ED mesh of a shape-model member with surface tags and fibre fields."""
+    """Write the ED mesh of a shape-model member with surface tags and fibre fields; print its shape
+    descriptors."""
+    from solver.descriptors import format_descriptors, shape_descriptors
     from solver.fibres import centroid_frames, helix_angle_at_nodes, transmural_coordinate
     from solver.fidelity import get_fidelity
     from solver.meshing import check_node_target, mesh_lv
@@ -218,7 +222,7 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
         check_node_target(nodes)
         if seed < 0:
             raise ValueError(f"--seed must be ≥ 0, got {seed}")
-        shape_def = lv_shape(shape, seed)
+        shape_def = lv_shape(shape, seed, shape_model)
         lv = mesh_lv(shape_def, nodes)
         phi = transmural_coordinate(lv)
         frames = {order: centroid_frames(lv, endo, epi, order) for order in (1, 2)}
@@ -231,9 +235,10 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
     except _input_errors() as exc:
         fail(str(exc))
     info = lv.info
-    typer.echo(f"shape {shape} (seed {seed}): {lv.n_nodes} nodes, {len(lv.tets)} tets, "
+    typer.echo(f"shape {shape} (seed {seed}, shape model {shape_model}): {lv.n_nodes} nodes, {len(lv.tets)} tets, "
                f"EDV {shape_def.cavity_volume_ml():.1f} mL, wall {shape_def.wall_thickness_mm:.1f} mm, "
                f"min scaled Jacobian {info['min_scaled_jacobian']:.3f} → {out}")
+    typer.echo(f"descriptors: {format_descriptors(shape_descriptors(lv))}")
 
 
 @app.command()
@@ -884,11 +889,15 @@ def _print_evaluation(report: dict, split: str, store: str, as_json: bool) -> No
                                "config": report["config"], "configuration": report["configuration"],
                                "rotations": report["rotations"],
                                "members": report["members"], "labels_fidelity": report["labels_fidelity"],
+                               "unfinished_runs": report["unfinished_runs"],
                                **({"reference": report["reference"]} if "reference" in report else {})}))
         return
     from rich.console import Console
     from rich.table import Table
 
+    for u in report["unfinished_runs"]:
+        typer.echo(f"warning: run {u['run']} is unfinished: it stopped at epoch {u['epoch']} of {u['epochs']} (killed, "
+                   f"or still training); `heartctl train` with the same --run-dir finishes it", err=True)
     agg = report["aggregate"]
     ref = report.get("reference")
     table = Table(title=f"{report['config']} on {report['summary']['cases']} {split} cases of {store}")

@@ -883,3 +883,24 @@ def test_a_full_disk_in_a_ray_train_failure_is_found_and_named(tmp_path):
     found = worker_disk_full(wrapped, tmp_path)
     assert isinstance(found, DiskFullError) and f"disk full saving a checkpoint in {tmp_path}" in str(found)
     assert worker_disk_full(WorkerGroupError({0: ValueError("other")}), tmp_path) is None
+
+
+def test_evaluate_says_a_run_is_unfinished(trained, tmp_path):
+    """A run killed in training (its checkpoint of epoch 2 of 6, not its last): evaluate's table comes
+    with one warning naming the epoch it stopped at; --json carries it."""
+    from trainer.checkpoint import save_checkpoint
+
+    cut = tmp_path / "cut"
+    shutil.copytree(trained["run"], cut)
+    state = load_run(cut)
+    state.update(finished=False, epoch=2, train_config={**state["train_config"], "epochs": 6})
+    save_checkpoint(cut / "checkpoint.pt", {k: v for k, v in state.items() if k not in ("format", "version")})
+    r = run("evaluate", "--run", cut, "--store", trained["store"], "--no-plots", "--out", tmp_path / "e")
+    assert r.exit_code == 0, r.output
+    warnings = [ln for ln in r.output.splitlines() if ln.startswith("warning:")]
+    assert warnings == [f"warning: run {cut} is unfinished: it stopped at epoch 2 of 6 (killed, or still training); "
+                        f"`heartctl train` with the same --run-dir finishes it"], r.output
+    r = run("evaluate", "--run", cut, "--store", trained["store"], "--no-plots", "--json", "--out", tmp_path / "j")
+    assert json.loads(r.output.strip().splitlines()[-1])["unfinished_runs"] == [{"run": str(cut), "epoch": 2, "epochs": 6}]
+    r = run("evaluate", "--run", trained["run"], "--store", trained["store"], "--no-plots", "--out", tmp_path / "f")
+    assert "unfinished" not in r.output

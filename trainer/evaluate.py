@@ -32,8 +32,19 @@ def _keys_for(state: dict, split: str) -> list | None:
     return keys
 
 
-def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations: int) -> Predictor:
-    """Another run of an ensemble, checked against the first run's store and split."""
+def unfinished_run(run_dir, state: dict) -> dict | None:
+    """{"run", "epoch", "epochs"} of a run whose checkpoint is not its last (killed in training, or
+    training still), else None; a checkpoint that does not say is taken as finished."""
+    if state.get("finished", True):
+        return None
+    from .config import TrainConfig
+
+    return {"run": str(run_dir), "epoch": int(state["epoch"]),
+            "epochs": TrainConfig.from_dict(state["train_config"]).epochs}
+
+
+def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations: int) -> tuple[Predictor, dict]:
+    """Another run of an ensemble, checked against the first run's store and split, and its checkpoint."""
     state = load_run(run_dir)
     if state["fingerprint"] != first["fingerprint"]:
         raise TrainerError(f"ensemble run {run_dir} was trained on another store than the first run")
@@ -41,7 +52,7 @@ def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations
         raise TrainerError(f"ensemble run {run_dir} has another {split} split than the first run "
                            f"(another --split or split seed; --split-seed fixes it across --seed values): "
                            f"its training cases would be scored")
-    return Predictor(state, device, rotations=rotations)
+    return Predictor(state, device, rotations=rotations), state
 
 
 def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_dir=None, plots: bool = True,
@@ -57,8 +68,10 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
     run_dir = Path(run_dir)
     state = load_run(run_dir)
     keys = _keys_for(state, split)
-    pred = Ensemble([Predictor(state, device, rotations=rotations)]
-                    + [_member(Path(d), state, split, keys, device, rotations) for d in members])
+    others = [_member(Path(d), state, split, keys, device, rotations) for d in members]
+    pred = Ensemble([Predictor(state, device, rotations=rotations)] + [member for member, _ in others])
+    unfinished = [u for u in (unfinished_run(run_dir, state), *(unfinished_run(d, st) for d, (_, st) in
+                                                                zip(members, others))) if u is not None]
     default = (f"eval_{split}" + (f"_rot{pred.rotations}" if pred.rotations > 1 else "")
                + (f"_ensemble{len(pred.members)}" if len(pred.members) > 1 else ""))
     cases = read_store(store, keys)
@@ -109,7 +122,7 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
               "configuration": [describe_run(m.cfg) for m in pred.members],
               "device": str(pred.device),
               "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS},
-              "labels_fidelity": cases.attrs.get("fidelity")}
+              "labels_fidelity": cases.attrs.get("fidelity"), "unfinished_runs": unfinished}
     if matches is not None:
         extras["reference"] = reference_summary(ref_rows, reference, ref_cases, cases.attrs.get("fidelity"))
     by_param = _by_parameter(rows)
