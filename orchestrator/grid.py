@@ -13,6 +13,7 @@ from solver.fibres import check_fibre_rule
 from solver.lv import BASE_CONDITIONS
 from solver.meshing import MESH_LEVELS, check_node_target
 from solver.parameters import PAPER_GRID, CaseParameters
+from solver.shape_model import SHAPE_MODEL_VERSION, check_version
 
 AXES = ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg")
 AXIS_FLAGS = {"pressure_mmhg": "--pressures", "stiffness_pa": "--stiffness", "helix_endo_deg": "--endo",
@@ -36,6 +37,7 @@ class SweepSpec:
     fibres: str = "laplace"  # fibre rule: laplace | heartfem
     meshes: tuple = ()  # user ED mesh files as the shape set (shape id = position), instead of the model
     mesh_units: str = "mm"
+    shape_model_version: int = SHAPE_MODEL_VERSION  # a resumed store keeps its own (none recorded: 1)
 
     def __post_init__(self):
         for axis in AXES:
@@ -69,6 +71,7 @@ class SweepSpec:
         if self.base not in BASE_CONDITIONS:
             raise ValueError(f"--base must be one of {', '.join(BASE_CONDITIONS)}, got {self.base!r}")
         check_fibre_rule(self.fibres)
+        check_version(self.shape_model_version)
         if self.meshes and self.shapes != len(self.meshes):
             raise ValueError(f"--shapes {self.shapes} does not match the {len(self.meshes)} mesh files given")
         return self
@@ -117,6 +120,7 @@ class SweepSpec:
             "base": self.base,
             "fibres": self.fibres,
             "shape_source": "files" if self.meshes else "shape model",
+            "shape_model_version": self.shape_model_version,
             "meshes": [{"path": m, "sha256": file_digest(m)} for m in self.meshes],
             "mesh_units": self.mesh_units,
             "n_cases_per_shape": self.cases_per_shape,
@@ -136,7 +140,8 @@ class SweepSpec:
         return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
                    seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"),
                    fibres=attrs.get("fibres", "laplace"), meshes=tuple(m["path"] for m in attrs.get("meshes", [])),
-                   mesh_units=attrs.get("mesh_units", "mm"))
+                   mesh_units=attrs.get("mesh_units", "mm"),
+                   shape_model_version=stored_shape_model_version(attrs))
 
     def conflicts(self, attrs: dict) -> list[str]:
         """How this request differs from the store's (empty: it may resume that store). More shapes
@@ -160,6 +165,8 @@ class SweepSpec:
                 out.append(f"the {self.fidelity} preset's settings ({', '.join(changed)})")
         if stored.seed != self.seed:
             out.append(f"--seed {self.seed} (store has {stored.seed})")
+        if stored.shape_model_version != self.shape_model_version and not self.meshes:
+            out.append(f"shape model version {self.shape_model_version} (store has {stored.shape_model_version})")
         if stored.nodes != self.nodes:
             out.append(f"--nodes {self.nodes} (store has {stored.nodes})")
         if stored.base != self.base:
@@ -173,6 +180,12 @@ class SweepSpec:
         elif self.meshes and stored.mesh_units != self.mesh_units:
             out.append(f"--units {self.mesh_units} (store has {stored.mesh_units})")
         return out
+
+
+def stored_shape_model_version(attrs: dict) -> int:
+    """The shape model version a store draws its shapes from: recorded since version 2; a store
+    without the record was drawn from version 1 and keeps drawing it."""
+    return int(attrs.get("shape_model_version") or 1)
 
 
 def file_digest(path: str) -> str:
@@ -234,6 +247,8 @@ def resolve_spec(explicit: dict, local: bool = False, stored_attrs: dict | None 
         base = SweepSpec()
     values = asdict(base)
     values.update({k: v for k, v in explicit.items() if v is not None})
+    if stored_attrs is not None:  # a store keeps the shape model it was drawn from
+        values["shape_model_version"] = stored_shape_model_version(stored_attrs)
     return SweepSpec(**values)
 
 

@@ -43,7 +43,7 @@ def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
     `warm_start` and more than one pressure, then the next pressure up (or down) started from it, and
     price a pair as the mean over a pressure chain: (cold + (n − 1) · warm) / n."""
     t0 = time.perf_counter()
-    m = mesh_shape(0, spec.seed, spec.nodes, *spec.mesh_source(0))
+    m = mesh_shape(0, spec.seed, spec.nodes, *spec.mesh_source(0), shape_model_version=spec.shape_model_version)
     mesh_s = time.perf_counter() - t0
     params = spec.mid_params()
     res = run_case(m["mesh"], params, spec.fidelity, spec.base, fibres=spec.fibres)

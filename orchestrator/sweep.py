@@ -369,7 +369,8 @@ def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progres
             t1 = time.perf_counter()
             missing = [s for s in range(spec.shapes) if not store.shape_ready(s)]
             bar.phase(f"meshing {len(missing)} shapes" if missing else "meshes ready")
-            refs = {mesh_remote.remote(s, spec.seed, spec.nodes, *spec.mesh_source(s)): s for s in missing}
+            refs = {mesh_remote.remote(s, spec.seed, spec.nodes, *spec.mesh_source(s),
+                                       shape_model_version=spec.shape_model_version): s for s in missing}
             while refs:
                 ready, _ = ray.wait(list(refs), num_returns=1)
                 s = refs.pop(ready[0])

@@ -30,9 +30,11 @@ def _single_thread() -> None:
         os.environ.setdefault(var, "1")
 
 
-def mesh_shape(shape_id: int, seed: int, nodes: int, mesh_file: str | None = None, units: str = "mm") -> dict:
-    """Mesh one shape-model member, or read a user's ED mesh file (then `seed` and `nodes` do not
-    apply and the coefficients are NaN). Returns the TetMesh and its shape coefficients."""
+def mesh_shape(shape_id: int, seed: int, nodes: int, mesh_file: str | None = None, units: str = "mm",
+               shape_model_version: int = 1) -> dict:
+    """Mesh one member of the shape model's `shape_model_version`, or read a user's ED mesh file
+    (then `seed` and `nodes` do not apply and the coefficients are NaN). Returns the TetMesh and its
+    shape coefficients."""
     _single_thread()
     from solver.meshing import mesh_lv
     from solver.shape_model import MODES, lv_shape
@@ -45,7 +47,7 @@ def mesh_shape(shape_id: int, seed: int, nodes: int, mesh_file: str | None = Non
         coefficients = np.full(len(MODES), np.nan)
         cavity_ml = float("nan")
     else:
-        shape = lv_shape(int(shape_id), int(seed))
+        shape = lv_shape(int(shape_id), int(seed), int(shape_model_version))
         mesh = mesh_lv(shape, int(nodes))
         coefficients = np.asarray(shape.coefficients, dtype=float)
         cavity_ml = float(shape.cavity_volume_ml())

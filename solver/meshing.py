@@ -9,6 +9,7 @@ from .shape_model import LVShape
 
 DEFAULT_NODES = 800  # the paper's meshes have 645–692 nodes; our default range is 600–1000
 MESH_LEVELS = {"coarse": 350, "default": DEFAULT_NODES, "fine": 2500}
+APEX_ELEMENTS_PER_MM = 2.5  # version 2: element size at a thin apex, × its thickness
 MIN_NODES, MAX_NODES = 50, 200_000  # 250× the default: a mistyped count (1e8) must not mesh until killed
 
 
@@ -18,8 +19,10 @@ def check_node_target(nodes: int, name: str = "--nodes") -> None:
         raise ValueError(f"{name} must be {MIN_NODES}–{MAX_NODES:,} (a target node count), got {nodes}")
 
 
-def _gmsh_truncated_shell(endo_axes, epi_axes, centre_z: float, base_z: float, size_mm: float):
-    """Mesh (ellipsoid(epi) − ellipsoid(endo)) ∩ {z ≤ base_z}; returns nodes, tets, tagged triangles."""
+def _gmsh_truncated_shell(endo_axes, epi_axes, centre_z: float, base_z: float, size_mm: float,
+                          apex_size_mm: float | None = None):
+    """Mesh (ellipsoid(epi) − ellipsoid(endo)) ∩ {z ≤ base_z}; returns nodes, tets, tagged triangles.
+    apex_size_mm: element size at the apex (a thin apex), growing to size_mm over a few sizes."""
     import gmsh
 
     # the same mesh for the same input, whatever the user's ~/.gmshrc or ~/.gmsh-options and whatever
@@ -41,8 +44,10 @@ def _gmsh_truncated_shell(endo_axes, epi_axes, centre_z: float, base_z: float, s
         box = occ.addBox(-L, -L, base_z, 2 * L, 2 * L, 2 * L)
         occ.cut(wall, [(3, box)])
         occ.synchronize()
-        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * size_mm)
+        gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * size_mm if apex_size_mm is None else apex_size_mm)
         gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
+        if apex_size_mm is not None:
+            _apex_size_field(gmsh, centre_z - endo_axes[2], centre_z - epi_axes[2], size_mm, apex_size_mm)
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
         gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 1)
         gmsh.option.setNumber("Mesh.Algorithm3D", 1)
@@ -79,9 +84,34 @@ def _gmsh_truncated_shell(endo_axes, epi_axes, centre_z: float, base_z: float, s
     return nodes[used], remap[tets], remap[endo], remap[epi], remap[base]
 
 
-def _mesh_once(endo_axes, epi_axes, centre_z, base_z, size_mm, info) -> TetMesh:
-    nodes, tets, endo, epi, base = _gmsh_truncated_shell(endo_axes, epi_axes, centre_z, base_z, size_mm)
+def _apex_size_field(gmsh, endo_apex_z: float, epi_apex_z: float, size_mm: float, apex_size_mm: float) -> None:
+    """Element size apex_size_mm near the apex (within 1.5 of it of the point between the two
+    apices), growing linearly to size_mm over the next 2 × size_mm: a formula, no geometry added."""
+    z0, d0 = 0.5 * (endo_apex_z + epi_apex_z), 1.5 * apex_size_mm + 0.5 * abs(endo_apex_z - epi_apex_z)
+    slope = (size_mm - apex_size_mm) / (2.0 * size_mm)
+    field = gmsh.model.mesh.field
+    f = field.add("MathEval")
+    dist = f"sqrt(x*x + y*y + (z - ({z0:.9g}))*(z - ({z0:.9g})))"
+    field.setString(f, "F", f"min({size_mm:.9g}, {apex_size_mm:.9g} + {slope:.9g} * max(0, {dist} - {d0:.9g}))")
+    field.setAsBackgroundMesh(f)
+
+
+def _mesh_once(endo_axes, epi_axes, centre_z, base_z, size_mm, info, apex_size=None, node_map=None) -> TetMesh:
+    """One gmsh mesh at element size size_mm; apex_size(size_mm) → the apex's size or None;
+    node_map: a smooth map of the nodes (keeping the base plane) applied before the checks."""
+    for attempt in range(4):  # gmsh may fail on a coarse mesh of a thin wall (its surfaces cross): a little finer
+        apex_mm = apex_size(size_mm) if apex_size is not None else None
+        try:
+            nodes, tets, endo, epi, base = _gmsh_truncated_shell(endo_axes, epi_axes, centre_z, base_z, size_mm,
+                                                                 apex_mm)
+            break
+        except Exception as exc:
+            if attempt == 3 or "PLC" not in str(exc):
+                raise
+            size_mm *= 0.9
     nodes[np.abs(nodes[:, 2] - base_z) < 1e-9, 2] = base_z
+    if node_map is not None:
+        nodes = node_map(nodes)
     tets = orient_positive(nodes, tets)
     quality = scaled_jacobian(nodes, tets)
     info = dict(info, size_mm=float(size_mm), min_scaled_jacobian=float(quality.min()),
@@ -90,21 +120,23 @@ def _mesh_once(endo_axes, epi_axes, centre_z, base_z, size_mm, info) -> TetMesh:
 
 
 def mesh_truncated_ellipsoid(endo_axes, epi_axes, centre_z: float, base_z: float,
-                             target_nodes: int = DEFAULT_NODES, info=None) -> TetMesh:
+                             target_nodes: int = DEFAULT_NODES, info=None, apex_size=None,
+                             node_map=None) -> TetMesh:
     """Mesh with about `target_nodes` nodes (within ~15 %): the element size is calibrated from
-    a first mesh (node count ∝ h^-3) and refined once more if needed."""
+    a first mesh (node count ∝ h^-3) and refined once more if needed. apex_size, node_map: as
+    _mesh_once (version 2 of the shape model)."""
     check_node_target(target_nodes, "target node count")
     info = dict(info or {})
     ax, ay, c = epi_axes
     wall_volume = 4.0 / 3.0 * np.pi * (ax * ay * c - np.prod(endo_axes)) * 0.6
     size = (wall_volume / (target_nodes * 0.9)) ** (1.0 / 3.0) * 1.6
-    mesh = _mesh_once(endo_axes, epi_axes, centre_z, base_z, size, info)
-    for _ in range(3):
+    mesh = _mesh_once(endo_axes, epi_axes, centre_z, base_z, size, info, apex_size, node_map)
+    for _ in range(3 if apex_size is None else 6):  # a refined apex's nodes do not scale with the size
         ratio = mesh.n_nodes / target_nodes
         if 0.87 <= ratio <= 1.15:
             break
         size *= ratio ** (1.0 / 3.0)
-        mesh = _mesh_once(endo_axes, epi_axes, centre_z, base_z, size, info)
+        mesh = _mesh_once(endo_axes, epi_axes, centre_z, base_z, size, info, apex_size, node_map)
     return mesh
 
 
@@ -112,5 +144,14 @@ def mesh_lv(shape: LVShape, target_nodes: int = DEFAULT_NODES) -> TetMesh:
     """The ED mesh of a shape-model member (mm, base plane z = 0)."""
     info = {"shape_id": shape.shape_id, "coefficients": list(shape.coefficients),
             "cavity_volume_ml": shape.cavity_volume_ml()}
-    return mesh_truncated_ellipsoid(shape.endo_semi_axes_mm, shape.epi_semi_axes_mm,
-                                    -shape.base_height_mm, 0.0, target_nodes, info)
+    if not shape.has_map():
+        return mesh_truncated_ellipsoid(shape.endo_semi_axes_mm, shape.epi_semi_axes_mm,
+                                        -shape.base_height_mm, 0.0, target_nodes, info)
+    info["shape_model_version"] = shape.version
+    ta = shape.apex_thickness_mm
+
+    def apex_size(size_mm: float) -> float | None:  # a thin apex gets elements about its thickness
+        return APEX_ELEMENTS_PER_MM * ta if APEX_ELEMENTS_PER_MM * ta < 0.5 * size_mm else None
+
+    return mesh_truncated_ellipsoid(shape.endo_semi_axes_mm, shape.epi_semi_axes_mm, -shape.base_height_mm, 0.0,
+                                    target_nodes, info, apex_size, shape.map_nodes)

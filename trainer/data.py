@@ -357,7 +357,7 @@ def store_fingerprint(attrs: dict, features: dict) -> dict:
     """What ties a run to its store: grid, fidelity, seed, base, and the node count of each shape."""
     return {"grid": attrs.get("grid"), "fidelity": attrs.get("fidelity"), "seed": attrs.get("seed"),
             "base": attrs.get("base"), "fibres": attrs.get("fibres", "laplace"),
-            "mesh_nodes": attrs.get("mesh_nodes"),
+            "mesh_nodes": attrs.get("mesh_nodes"), "shape_model_version": attrs.get("shape_model_version"),
             "shape_nodes": {str(s): int(f.ed_mm.shape[0]) for s, f in sorted(features.items())}}
 
 
@@ -408,6 +408,7 @@ class DataBundle:
     fingerprint: dict
     cases: StoreCases = field(repr=False, default=None)
     parent: Parent | None = field(repr=False, default=None)  # the checkpoint a fine-tuning run starts from
+    train_descriptors: dict = field(default_factory=dict)  # {"shapes": [ids], name: [values]} of the training shapes
 
 
 def build_graphs(cases: StoreCases, keys: list, norm: Normalisation, labelled: set | None = None,
@@ -442,7 +443,25 @@ def build_training_data(store, split: str = "shape", seed: int = 0, sr: float = 
     return DataBundle(build_graphs(cases, parts["train"], norm, labelled, response),
                       build_graphs(cases, parts["val"], norm, response=response),
                       build_graphs(cases, parts["test"], norm, response=response), norm, parts, labelled,
-                      store_fingerprint(cases.attrs, cases.features), cases)
+                      store_fingerprint(cases.attrs, cases.features), cases,
+                      train_descriptors=training_descriptors(cases, parts["train"]))
+
+
+def training_descriptors(cases: StoreCases, keys: list) -> dict:
+    """Shape descriptors (solver.descriptors) of the training shapes' ED meshes, as the checkpoint
+    keeps them: {"shapes": [shape ids], descriptor name: [one value per shape]}. A mesh the
+    descriptors cannot read is left out."""
+    from solver.descriptors import descriptor_table, shape_descriptors
+
+    shapes, rows = [], []
+    for s in sorted({int(k[0]) for k in keys}):
+        mesh = cases.features[s].mesh
+        try:
+            rows.append(shape_descriptors(mesh))
+        except (ValueError, IndexError, AttributeError):
+            continue
+        shapes.append(s)
+    return {"shapes": shapes, **descriptor_table(rows)} if rows else {}
 
 
 def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:

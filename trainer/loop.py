@@ -230,7 +230,7 @@ def check_resumable(state: dict, cfg: TrainConfig, bundle: DataBundle, run_dir: 
 def base_state(cfg: TrainConfig, bundle: DataBundle, kind: str) -> dict:
     return {"kind": kind, "train_config": cfg.as_dict(), "normalisation": bundle.norm.as_dict(),
             "fingerprint": bundle.fingerprint, "split": {k: [list(x) for x in v] for k, v in bundle.split.items()},
-            "labelled": sorted([list(k) for k in bundle.labelled])}
+            "labelled": sorted([list(k) for k in bundle.labelled]), "train_descriptors": bundle.train_descriptors}
 
 
 def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,

@@ -282,6 +282,27 @@ def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params, units_warn
     return out
 
 
+def _shape_warnings(pred: Predictor | Ensemble, mesh) -> list:
+    """One line when the mesh's shape descriptors lie outside the training shapes' (recorded in the
+    checkpoint as train_descriptors; a checkpoint without them is not compared)."""
+    from solver.descriptors import outside_range, range_warning, shape_descriptors
+
+    out, mine = [], None
+    for label, m in _each(pred):
+        table = m.state.get("train_descriptors")
+        if not isinstance(table, dict) or not table:
+            continue
+        if mine is None:
+            try:
+                mine = shape_descriptors(mesh)
+            except (ValueError, IndexError):
+                return out
+        line = range_warning(outside_range(mine, table))
+        if line:
+            out.append(label + line)
+    return out
+
+
 def _model_warnings(pred: Predictor | Ensemble, asked: dict) -> list:
     """Warnings for model choices (`base`, `fibres`) the user asked for that the network was not
     trained with: `--method gnn` can only give the answer of the model its store was generated with."""
@@ -323,7 +344,8 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     net_ms = pred.time_ms_per_case([(feat, values, None)], 1, repeats=5, warmup=3)  # the model alone, warm
     guess = mesh.nodes + disp
     out = {"network_ms": net_ms, "first_call_ms": first_ms,
-           "warnings": _warnings(pred, feat, values, units_warned="units_warning" in mesh.info),
+           "warnings": _warnings(pred, feat, values, units_warned="units_warning" in mesh.info)
+           + _shape_warnings(pred, mesh),
            "run": pred.run_label, "members": len(pred.members), "spread_mm": spread,
            "with_response": pred.uses_response}
     if method == "gnn":

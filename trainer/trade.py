@@ -269,12 +269,13 @@ def run_trade(spec: TradeSpec, cache_dir: Path | None = None, progress=None) -> 
     fingerprint = predictors["gnn"].state.get("fingerprint", {})
     base = fingerprint_value(fingerprint, "base") or "sliding"
     fibres = fingerprint_value(fingerprint, "fibres")
+    version = int(fingerprint.get("shape_model_version") or 1)  # held-out shapes come from the store's model
     cache = SolveCache(cache_dir)
     rows, meshes = [], {}
     for case in held_out_cases(fingerprint, spec):
         mkey = (case.shape_id, case.target_nodes)
         if mkey not in meshes:
-            meshes[mkey] = mesh_lv(lv_shape(case.shape_id, case.seed), case.target_nodes)
+            meshes[mkey] = mesh_lv(lv_shape(case.shape_id, case.seed, version), case.target_nodes)
         ed = meshes[mkey]
         ref = reference_answer(case, ed, base, fibres, cache, progress)
         if ref.failed:
