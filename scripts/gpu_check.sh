@@ -3,9 +3,10 @@
 # scripts/gpu_prepare.sh). In order of what matters most, each step time-boxed so that one slow step
 # cannot eat the lease: `heartctl bench model` on the paper-size model (sparse GAT kernel, bf16) with
 # torch.profiler's top kernels; the CUDA tests; PyG's GATConv kernel; then, where .gpu/store.zarr
-# exists, `heartctl train --no-ray --device cuda` on it, eager and with --compile (the real loop's
-# graphs/s); then fp32, a training batch of 512, and bench model through torch.compile (~8 min on an H200
-# in all).
+# exists, `heartctl train --no-ray --device cuda` on it, eager, then the same through Ray Train on one
+# GPU (`--gpus 1`: DDP over NCCL, from .gpu/ray) and with --compile (each epoch's line gives the loop's
+# graphs/s); then fp32, a training batch of 512, and bench model through torch.compile (~9 min on an
+# H200 in all).
 # Output goes to stdout and, where $OUT is set, to $OUT/gpu_check.log.
 # DEVICE=cpu runs the same steps on a CPU (to check the script itself).
 set -uo pipefail
@@ -27,8 +28,18 @@ step() {  # step SECONDS TITLE COMMAND...
 }
 HEARTCTL=($PY -c "from cli import main; main()")
 BENCH=("${HEARTCTL[@]}" bench model --device "$DEVICE" --mesh .gpu/lv650.vtu)
-TRAIN=("${HEARTCTL[@]}" train --no-ray --device "$DEVICE" --store .gpu/store.zarr --batch-size "$TB"
-       --epochs "${EPOCHS:-8}" --patience 100)
+TRAIN_ARGS=(--store .gpu/store.zarr --batch-size "$TB" --epochs "${EPOCHS:-8}" --patience 100)
+TRAIN=("${HEARTCTL[@]}" train --no-ray --device "$DEVICE" "${TRAIN_ARGS[@]}")
+RAY_SITE=${RAY_SITE:-/tmp/heartctl-ray}
+
+RAY_GPUS=(--gpus 1 --bf16)  # one GPU worker, DDP over NCCL; with DEVICE=cpu one gloo worker
+[ "$DEVICE" = cuda ] || RAY_GPUS=(--gpus 0 --workers 1)
+
+ray_site() {  # unpack .gpu/ray's trimmed Ray and its wheels into $RAY_SITE once
+  [ -f .gpu/ray/ray-trim.tar.xz ] && [ ! -d "$RAY_SITE/ray" ] || return 0
+  mkdir -p "$RAY_SITE" && tar -xJf .gpu/ray/ray-trim.tar.xz -C "$RAY_SITE" &&
+    $PY -m pip install -q --no-index --no-deps --target "$RAY_SITE" .gpu/ray/wheels/*.whl 2>&1 | tail -2
+}
 
 main() {
 # meshio for the mesh; zarr and its codecs for the store (the GPU host has the rest)
@@ -43,6 +54,9 @@ step 75 "CUDA tests" env PYTEST_DISABLE_PLUGIN_AUTOLOAD=1 $PY -m pytest -q -p no
 step 50 "pyg kernel, fp32" "${BENCH[@]}" --gat-kernel pyg --batches "1,${BATCHES##*,}" --train-batch "$TB"
 if [ -d .gpu/store.zarr ]; then
   step 75 "heartctl train, bf16, eager" "${TRAIN[@]}" --bf16 --run-dir "$RUNS/eager"
+  ray_site
+  step 120 "heartctl train ${RAY_GPUS[*]} through Ray Train" env PYTHONPATH="$RAY_SITE:$PYTHONPATH" \
+    "${HEARTCTL[@]}" train "${RAY_GPUS[@]}" "${TRAIN_ARGS[@]}" --run-dir "$RUNS/ray"
   step 180 "heartctl train, bf16, --compile" "${TRAIN[@]}" --bf16 --compile --run-dir "$RUNS/compiled"
 fi
 step 50 "sparse kernel, fp32" "${BENCH[@]}" --gat-kernel sparse --batches "$BATCHES" --train-batch "$TB"
