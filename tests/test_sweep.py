@@ -289,7 +289,9 @@ def test_status_and_dry_run_cli(tmp_path, small_store):
 
 def test_a_damaged_status_chunk_is_one_line_and_the_store_untouched(tmp_path):
     """status and a resuming generate read every shape's status array: a chunk that does not decompress
-    (numcodecs raises RuntimeError) is exit 2 and one line, not a traceback, and nothing is written."""
+    (numcodecs raises RuntimeError) is damage of the shape, not a traceback: status names it (exit 1),
+    generate refuses the store in one line naming --retry-damaged (exit 2), and nothing is written."""
+    from cli import app
     from trainer_fixtures import make_tiny_store
 
     store = Path(make_tiny_store(tmp_path / "t.zarr", shapes=2))
@@ -297,10 +299,13 @@ def test_a_damaged_status_chunk_is_one_line_and_the_store_untouched(tmp_path):
     assert chunks
     chunks[0].write_bytes(b"\x00garbage" * 5)
     before = _snapshot(store)
-    for args in (["status", "--store", str(store)], ["generate", "--store", str(store)]):
-        code, err = _run_cli(args)
-        lines = [ln for ln in err.strip().splitlines() if ln.strip()]
-        assert code == 2 and len(lines) == 1 and lines[0].startswith("heartctl: error: cannot read store"), err
+    status = CliRunner().invoke(app, ["status", "--store", str(store)])
+    assert status.exit_code == 1 and "damaged: shape 1 every case: its array 'status' is damaged" in status.output
+    assert "Traceback" not in status.output
+    code, err = _run_cli(["generate", "--store", str(store)])
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert code == 2 and len(lines) == 1 and "shape 1 is damaged: its array 'status' is damaged" in lines[0], err
+    assert "--retry-damaged" in lines[0]
     assert _snapshot(store) == before
 
 
@@ -349,15 +354,16 @@ def test_retry_damaged_recomputes_only_the_damaged_case(ray_cluster, tmp_path):
 def test_retry_damaged_recomputes_missing_data_and_a_shape_with_edited_metadata(ray_cluster, tmp_path):
     """Shape 0's loaded shard deleted (its 4 cases' data missing) and shape 1's unloaded node count
     edited: verify names both, a plain sweep refuses the store in one line, and one with retry_damaged
-    recomputes shape 0's cases and meshes shape 1 again (the same mesh: meshing is deterministic) and
-    solves its cases, after which every case reads back intact."""
+    recomputes shape 0's cases and meshes shape 1 again (on a Ray worker, the mesh this process makes of
+    the store's shape model version) and solves its cases, after which every case reads back intact."""
     from storage.store import StoreError
     from test_store_damage import add_nodes_to
     from trainer_fixtures import case_chunk, make_tiny_store
 
+    from orchestrator.tasks import mesh_shape
+
     store = make_tiny_store(tmp_path / "t.zarr", shapes=2)
     reader = PairReader(store)
-    mesh1 = reader.mesh(1)
     case_chunk(store, 0, "loaded", 0)[0].unlink()
     add_nodes_to(store, 1)
     found = PairReader(store).damaged()
@@ -370,4 +376,5 @@ def test_retry_damaged_recomputes_missing_data_and_a_shape_with_edited_metadata(
     assert report.damaged_reset == [(0, 0), (0, 1), (0, 2), (0, 3), (1, None)] and report.done == 8
     after = PairReader(store)
     assert after.damaged() == [] and [len(after.done_cases([s])) for s in (0, 1)] == [4, 4]
+    mesh1 = mesh_shape(1, spec_.seed, spec_.nodes, shape_model_version=spec_.shape_model_version)["mesh"]
     assert np.array_equal(after.mesh(1).nodes, mesh1.nodes) and np.array_equal(after.mesh(1).tets, mesh1.tets)
