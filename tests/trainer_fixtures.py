@@ -21,8 +21,9 @@ def saved_mesh_path(shape_id: int, seed: int = 0, nodes: int = 120) -> Path:
 def tiny_spec(shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0), stiffness=(100.0, 200.0)):
     from orchestrator.grid import SweepSpec
 
+    # version 1: the meshes these stores hold (lv_mesh, and their copies in tests/data)
     return SweepSpec(shapes=shapes, pressure_mmhg=pressures, stiffness_pa=stiffness, helix_endo_deg=(60.0,),
-                     helix_epi_deg=(-60.0,), fidelity="fast", seed=seed, nodes=120)
+                     helix_epi_deg=(-60.0,), fidelity="fast", seed=seed, nodes=120, shape_model_version=1)
 
 
 def lv_mesh(shape_id: int, seed: int = 0, nodes: int = 120):

@@ -284,7 +284,8 @@ def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params, units_warn
 
 def _shape_warnings(pred: Predictor | Ensemble, mesh) -> list:
     """One line when the mesh's shape descriptors lie outside the training shapes' (recorded in the
-    checkpoint as train_descriptors; a checkpoint without them is not compared)."""
+    checkpoint as train_descriptors; a checkpoint without them is not compared). Not asked for a mesh
+    whose unit check already warned: its lengths are in another unit, and that one line says so."""
     from solver.descriptors import outside_range, range_warning, shape_descriptors
 
     out, mine = [], None
@@ -345,7 +346,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     guess = mesh.nodes + disp
     out = {"network_ms": net_ms, "first_call_ms": first_ms,
            "warnings": _warnings(pred, feat, values, units_warned="units_warning" in mesh.info)
-           + _shape_warnings(pred, mesh),
+           + ([] if "units_warning" in mesh.info else _shape_warnings(pred, mesh)),
            "run": pred.run_label, "members": len(pred.members), "spread_mm": spread,
            "with_response": pred.uses_response}
     if method == "gnn":
