@@ -164,8 +164,11 @@ def join_ray(address: str, timeout_s: float = CONNECT_TIMEOUT_S, **kwargs):
         thread.join(max(timeout_s - (time.monotonic() - start), 0.1))
     finally:
         sys.stderr.flush()
-        os.dup2(saved_fd, 2)
-        os.close(saved_fd)
+        if thread.is_alive():
+            _mute_abandoned_connect(saved_fd)
+        else:
+            os.dup2(saved_fd, 2)
+            os.close(saved_fd)
     captured.seek(0)
     said = captured.read().decode(errors="replace")
     captured.close()
@@ -181,6 +184,30 @@ def join_ray(address: str, timeout_s: float = CONNECT_TIMEOUT_S, **kwargs):
     if said:
         sys.stderr.write(said)
     return outcome["context"]
+
+
+def _mute_abandoned_connect(saved_fd: int) -> None:
+    """After ray.init is abandoned (still trying in its thread), Ray's C++ client keeps logging its
+    attempts on file descriptor 2 (`rpc_client.h:153: Failed to connect to GCS …` 5 s after it began,
+    then every ~40 s) for as long as the process lives. The command ends with one line of its own:
+    fd 2 goes to /dev/null for good, and Python's sys.stderr (when it is fd 2) writes to the terminal
+    through `saved_fd` (a copy of the original fd 2), so that line and any later Python output still
+    show. Under a test runner whose sys.stderr is no file, only fd 2 is muted."""
+    import io
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)
+    os.close(devnull)
+    try:
+        uses_fd2 = sys.stderr is not None and sys.stderr.fileno() == 2
+    except (AttributeError, OSError, ValueError):
+        uses_fd2 = False
+    if not uses_fd2:
+        os.close(saved_fd)
+        return
+    old = sys.stderr
+    sys.stderr = io.TextIOWrapper(io.FileIO(saved_fd, "w", closefd=True), encoding=old.encoding or "utf-8",
+                                  errors="backslashreplace", line_buffering=True)
 
 
 def start_or_join(where: RayAddress, join_options: dict | None = None, **start_options):
