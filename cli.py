@@ -128,6 +128,87 @@ def _read_mesh(path: Path, units: str):
         return read_mesh(path, units)
 
 
+SLOW_SOLVE_S = 30.0  # a solve expected to take longer shows its load steps or inverse updates on stderr
+LARGE_MESH_NODES = 20_000  # meshing a larger target says so, with its estimate, before gmsh starts
+
+
+def _available_memory() -> float:
+    """Bytes of memory available to a new solve on this machine (psutil)."""
+    import psutil
+
+    return float(psutil.virtual_memory().available)
+
+
+def _size(nbytes: float) -> str:
+    gb = nbytes / 1e9
+    return f"{gb:.0f} GB" if gb >= 9.5 else f"{gb:.1f} GB" if gb >= 0.95 else f"{nbytes / 1e6:.0f} MB"
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.0f} min" if seconds < 5400 else f"{seconds / 3600:.1f} h"
+
+
+def _solve_budget(mesh_path: Path, lv, preset: str, inverse: bool):
+    """solver.budget's estimate of this solve; refused in one line (exit 2) when its peak memory
+    exceeds the memory available here."""
+    from solver.budget import estimate_solve, mesh_counts
+
+    edges, faces = mesh_counts(lv.tets, len(lv.endo) + len(lv.epi) + len(lv.base))
+    est = estimate_solve(preset, lv.n_nodes, edges, len(lv.tets), faces, inverse)
+    available = _available_memory()
+    if est.peak_bytes > available:
+        instead = {"fast": "a coarser mesh", "accurate": "--fidelity fast or a coarser mesh",
+                   "reference": "--fidelity accurate or fast, or a coarser mesh"}[preset]
+        fail(f"{mesh_path}: the {preset} {'inverse ' if inverse else ''}solve of {lv.n_nodes:,} nodes "
+             f"({est.unknowns:,} unknowns) needs about {_size(est.peak_bytes)}; {_size(available)} are available: "
+             f"use {instead}")
+    return est
+
+
+class _progress_of:
+    """Within the block, a solve estimated to take over SLOW_SOLVE_S seconds says so in one line on
+    stderr, then prints solver.progress's reports (load steps, inverse updates) as lines with the
+    time taken; a shorter one prints nothing."""
+
+    def __init__(self, est, what: str):
+        self._est, self._what = est, what
+
+    def __enter__(self):
+        import time
+        from solver.progress import reporting
+
+        est = self._est
+        if est is None or est.seconds <= SLOW_SOLVE_S:
+            self._block = None
+            return self
+        typer.echo(f"heartctl: {self._what}: the {est.preset} {'inverse ' if est.inverse else ''}solve of "
+                   f"{est.nodes:,} nodes ({est.unknowns:,} unknowns) takes about {_duration(est.seconds)} and "
+                   f"{_size(est.peak_bytes)} (a rough estimate); progress follows", err=True)
+        start = time.monotonic()
+        self._block = reporting(lambda text: typer.echo(f"heartctl: {time.monotonic() - start:.0f} s: {text}",
+                                                        err=True))
+        self._block.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._block is not None:
+            self._block.__exit__(*exc)
+        return False
+
+
+def _mesh_progress(nodes: int):
+    """Meshing a target above LARGE_MESH_NODES: gmsh's retries at another element size as lines on stderr."""
+    import time
+    from contextlib import nullcontext
+
+    from solver.progress import reporting
+
+    if nodes <= LARGE_MESH_NODES:
+        return nullcontext()
+    start = time.monotonic()
+    return reporting(lambda text: typer.echo(f"heartctl: {time.monotonic() - start:.0f} s: {text}", err=True))
+
+
 class _warnings_as_lines:
     """Within the block, heartctl's warnings for the user (solver.mesh.MeshUnitsWarning) print as
     one line each on stderr, `heartctl: warning: …`; other warnings pass on as usual."""
@@ -223,7 +304,14 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
         if seed < 0:
             raise ValueError(f"--seed must be ≥ 0, got {seed}")
         shape_def = lv_shape(shape, seed, shape_model)
-        lv = mesh_lv(shape_def, nodes)
+        if nodes > LARGE_MESH_NODES:
+            from solver.budget import estimate_mesh
+
+            peak, seconds = estimate_mesh(nodes)
+            typer.echo(f"heartctl: meshing {nodes:,} nodes takes about {_duration(seconds)} and "
+                       f"{_size(peak)} (gmsh, one thread; a rough estimate)", err=True)
+        with _mesh_progress(nodes):
+            lv = mesh_lv(shape_def, nodes)
         phi = transmural_coordinate(lv)
         frames = {order: centroid_frames(lv, endo, epi, order) for order in (1, 2)}
         own = frames[get_fidelity(fidelity.value).displacement_order]
@@ -260,8 +348,10 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
     except _input_errors() as exc:
         fail(str(exc))
     _warn_high_pressure(pressure)
+    est = _solve_budget(mesh_path, lv, fidelity.value, inverse=False)
     try:
-        result = forward_solve(lv, params, fidelity.value, base.value, fibres=fibres)
+        with _progress_of(est, str(mesh_path)):
+            result = forward_solve(lv, params, fidelity.value, base.value, fibres=fibres)
     except SolveError as exc:
         fail(f"forward solve did not converge: {exc}", code=1)
     _write_mesh(out, lv, result.loaded_nodes, point_data={"displacement": result.displacement},
@@ -370,7 +460,11 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
     _warn_high_pressure(pressure)
     if choice is not None:
         _print_auto_choice(choice, tolerance_mm)
-    result = _unload_mesh(lv, params, plan)
+    est = None
+    if plan.method in ("fe", "hybrid") or check:
+        est = _solve_budget(mesh_path, lv, plan.fidelity, inverse=plan.method in ("fe", "hybrid"))
+    with _progress_of(est if plan.method in ("fe", "hybrid") else None, str(mesh_path)):
+        result = _unload_mesh(lv, params, plan)
     _write_unloaded(out, lv, result, units.value)
     _print_unloaded(result, lv, params, plan, out)
     if check and plan.method != "fe":

@@ -9,6 +9,7 @@ import numpy as np
 
 from .assembly import MechanicsProblem
 from .linear import SingularMatrix, SparseSolver
+from .progress import report
 
 
 STALE_TANGENT_RATE = 0.25  # refactorise when a modified-Newton step reduces |R| by less than 4×
@@ -246,6 +247,8 @@ def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None
             z_prev, load_prev = z, load
             z, load = z_new, target
             stats.load_steps += 1
+            report(f"load step {stats.load_steps}: {100 * load:.0f} % of the pressure, "
+                   f"{stats.newton_iterations} Newton iterations")
             if stats.newton_iterations - iters_before <= 4:
                 step = min(step * 2.0, 1.0)
             step = min(step, 1.0 - load) if load < 1.0 else step

@@ -14,6 +14,7 @@ from .elements import quadrature_barycentric
 from .fibres import FIBRE_RULES, rule_frames, transmural_coordinate
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
+from .progress import report
 from .linear import SingularMatrix, SparseSolver
 from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
@@ -279,6 +280,7 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
         mismatch = X + problem.split(z)[0][:n] - x_ed
         err = float(np.linalg.norm(mismatch, axis=1).max())
         history.append(err)
+        report(f"inverse update {update}: mismatch {err:.2e} mm (stops at {tol:g} mm)")
         if err <= tol or (max_updates is not None and update == budget):
             stats.wall_s = time.perf_counter() - t_start
             stats.min_jacobian = problem.min_jacobian(z)

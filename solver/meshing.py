@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .mesh import TetMesh, make_mesh, orient_positive, scaled_jacobian
+from .progress import report
 from .shape_model import LVShape
 
 DEFAULT_NODES = 800  # the paper's meshes have 645–692 nodes; our default range is 600–1000
@@ -135,6 +136,7 @@ def mesh_truncated_ellipsoid(endo_axes, epi_axes, centre_z: float, base_z: float
         ratio = mesh.n_nodes / target_nodes
         if 0.87 <= ratio <= 1.15:
             break
+        report(f"gmsh made {mesh.n_nodes:,} nodes for the target {target_nodes:,}: meshing again")
         size *= ratio ** (1.0 / 3.0)
         mesh = _mesh_once(endo_axes, epi_axes, centre_z, base_z, size, info, apex_size, node_map)
     return mesh
