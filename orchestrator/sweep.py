@@ -13,7 +13,6 @@ store's attributes, and the added shapes are meshed and solved like any pending 
 """
 from __future__ import annotations
 
-import errno
 import os
 import socket
 import sys
@@ -23,6 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from storage.disk import is_disk_full
 from storage.lock import LOCK_NAME, WriterLock, check_free
 from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, object_store_problem, stats_row
 
@@ -35,9 +35,6 @@ WRITE_HOLD_S = 30.0  # the longest a returned case waits to be written into its 
 
 class SweepConflict(ValueError):
     """The request conflicts with the store it would resume."""
-
-
-DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 
 class StoreFullError(RuntimeError):
@@ -61,17 +58,6 @@ class StoreLostError(RuntimeError):
         self.location, self.problem = location, problem
         super().__init__(f"lost the object store while writing {location}: {problem}; the cases marked done are "
                          f"intact, rerun the same command to resume once it answers")
-
-
-def _is_disk_full(exc: BaseException) -> bool:
-    """Whether exc, or an exception it was raised from, is an OSError ENOSPC or EDQUOT."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
-            return True
-        exc = exc.__cause__ or exc.__context__
-    return False
 
 
 def _cases_on_disk(location: str) -> int | None:
@@ -334,7 +320,7 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
         problem = object_store_problem(location, exc)
         if problem is not None:
             raise StoreLostError(str(location), problem) from None
-        if not _is_disk_full(exc):
+        if not is_disk_full(exc):
             raise
         raise StoreFullError(str(location), _cases_on_disk(location)) from None
 

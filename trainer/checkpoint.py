@@ -4,7 +4,6 @@ A SHA-256 of every tensor is recorded when saving and checked when loading: torc
 uncompressed and does not check them, so a flipped bit would otherwise load as a different network."""
 from __future__ import annotations
 
-import errno
 import hashlib
 import io
 import math
@@ -13,6 +12,7 @@ from pathlib import Path
 
 import torch
 
+from storage.disk import DISK_FULL_ERRNOS, is_disk_full  # noqa: F401  (re-exported for ray_train)
 from storage.meshfiles import atomic_write
 
 from .config import TrainerError
@@ -22,7 +22,6 @@ VERSION = 1
 CHECKPOINT_NAME = "checkpoint.pt"
 REQUIRED = ("format", "version", "kind", "train_config", "normalisation", "fingerprint", "split", "epoch")
 DIGEST_KEY = "tensors_sha256"
-DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
 
 
 class DiskFullError(RuntimeError):
@@ -34,17 +33,6 @@ def disk_full_error(folder, exc: BaseException | None = None) -> DiskFullError:
     why = f" ({os.strerror(exc.errno)})" if isinstance(exc, OSError) and exc.errno else ""
     return DiskFullError(f"disk full saving a checkpoint in {folder}{why}; the run keeps its last checkpoint: free "
                          f"space and rerun the same command to resume from it")
-
-
-def is_disk_full(exc: BaseException | None) -> bool:
-    """Whether exc, or an exception it was raised from, is an OSError ENOSPC or EDQUOT."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.errno in DISK_FULL_ERRNOS:
-            return True
-        exc = exc.__cause__ or exc.__context__
-    return False
 
 
 def _tensors(value, path: str = ""):
