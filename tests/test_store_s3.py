@@ -22,8 +22,11 @@ from storage.store import DONE, PENDING, PairReader, PairStore  # noqa: E402
 
 BUCKET = "heartctl-test"
 # one shape, 3 pressure chains of 2 cases (fast preset, a coarse mesh); one chain in flight at a time
-ARGS = ["generate", "--shapes", "1", "--pressures", "8,12", "--stiffness", "100,200,300", "--endo", "60",
-        "--epi=-60", "--fidelity", "fast", "--nodes", "100", "--max-in-flight", "1"]
+# The ED mesh comes from a file (--meshes, filled by `ed_mesh_folder`), the same for every store here:
+# these tests are about the store, and a mesh made again by gmsh in a long-lived Ray worker is not
+# always the same to the last node (an open defect of meshing; tests/test_solver_mesh_determinism.py)
+ARGS = ["generate", "--meshes", "", "--pressures", "8,12", "--stiffness", "100,200,300", "--endo", "60",
+        "--epi=-60", "--fidelity", "fast", "--max-in-flight", "1"]
 CASES = 6
 AWS_ENV = {"AWS_DEFAULT_REGION": "us-east-1",
            "AWS_MAX_ATTEMPTS": "1"}  # botocore's retries of a refused connection take seconds: one try here
@@ -106,6 +109,19 @@ def s3(tmp_path_factory):
         server.stop()
         mp.undo()
         _fresh_filesystems()
+
+
+@pytest.fixture(scope="module", autouse=True)
+def ed_mesh_folder(tmp_path_factory):
+    """One ED mesh (shape 0 of the shape model, ~100 nodes) in a folder that ARGS's --meshes names."""
+    from solver.meshing import mesh_lv
+    from solver.shape_model import SHAPE_MODEL_VERSION, lv_shape
+    from storage.meshfiles import write_mesh
+
+    folder = tmp_path_factory.mktemp("ed_meshes")
+    write_mesh(folder / "shape0.vtu", mesh_lv(lv_shape(0, 0, version=SHAPE_MODEL_VERSION), 100))
+    ARGS[ARGS.index("--meshes") + 1] = str(folder)
+    return folder
 
 
 @pytest.fixture(scope="module")
