@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from storage.disk import DISK_FULL_ERRNOS, is_disk_full  # noqa: F401  (re-exported for ray_train)
+from storage.disk import DISK_FULL_ERRNOS
 from storage.meshfiles import atomic_write
 
 from .config import TrainerError

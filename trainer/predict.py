@@ -282,13 +282,15 @@ def _warnings(pred: Predictor | Ensemble, feat: MeshFeatures, params, units_warn
     return out
 
 
-def _shape_warnings(pred: Predictor | Ensemble, mesh) -> list:
+def _shape_warnings(pred: Predictor | Ensemble, mesh, units_warned: bool = False) -> list:
     """One line when the mesh's shape descriptors lie outside the training shapes' (recorded in the
-    checkpoint as train_descriptors; a checkpoint without them is not compared). Not asked for a mesh
-    whose unit check already warned: its lengths are in another unit, and that one line says so."""
+    checkpoint as train_descriptors; a checkpoint without them is not compared). `units_warned`, as
+    in `_warnings`: the mesh's lengths are in another unit and that one line says so, so no more."""
     from solver.descriptors import outside_range, range_warning, shape_descriptors
 
     out, mine = [], None
+    if units_warned:
+        return out
     for label, m in _each(pred):
         table = m.state.get("train_descriptors")
         if not isinstance(table, dict) or not table:
@@ -346,7 +348,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     guess = mesh.nodes + disp
     out = {"network_ms": net_ms, "first_call_ms": first_ms,
            "warnings": _warnings(pred, feat, values, units_warned="units_warning" in mesh.info)
-           + ([] if "units_warning" in mesh.info else _shape_warnings(pred, mesh)),
+           + _shape_warnings(pred, mesh, units_warned="units_warning" in mesh.info),
            "run": pred.run_label, "members": len(pred.members), "spread_mm": spread,
            "with_response": pred.uses_response}
     if method == "gnn":

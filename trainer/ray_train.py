@@ -10,7 +10,9 @@ import tempfile
 import uuid
 from pathlib import Path
 
-from .checkpoint import (CHECKPOINT_NAME, DiskFullError, check_resume_parts, disk_full_error, is_disk_full,
+from storage.disk import is_disk_full
+
+from .checkpoint import (CHECKPOINT_NAME, DiskFullError, check_resume_parts, disk_full_error,
                          load_checkpoint, remove_stale_temporaries, run_checkpoint_path, save_checkpoint)
 from .config import TrainConfig, TrainerError, TrainingDiverged
 
