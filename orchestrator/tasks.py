@@ -36,7 +36,7 @@ def mesh_shape(shape_id: int, seed: int, nodes: int, mesh_file: str | None = Non
     (then `seed` and `nodes` do not apply and the coefficients are NaN). Returns the TetMesh and its
     shape coefficients."""
     _single_thread()
-    from solver.meshing import mesh_lv
+    from solver.meshing import mesh_lv_fresh_process
     from solver.shape_model import MODES, lv_shape
 
     t0 = time.perf_counter()
@@ -48,7 +48,7 @@ def mesh_shape(shape_id: int, seed: int, nodes: int, mesh_file: str | None = Non
         cavity_ml = float("nan")
     else:
         shape = lv_shape(int(shape_id), int(seed), int(shape_model_version))
-        mesh = mesh_lv(shape, int(nodes))
+        mesh = mesh_lv_fresh_process(int(shape_id), int(seed), int(shape_model_version), int(nodes))
         coefficients = np.asarray(shape.coefficients, dtype=float)
         cavity_ml = float(shape.cavity_volume_ml())
     info = {k: (float(v) if isinstance(v, (np.floating, float)) else v) for k, v in mesh.info.items()

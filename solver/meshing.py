@@ -157,3 +157,30 @@ def mesh_lv(shape: LVShape, target_nodes: int = DEFAULT_NODES) -> TetMesh:
 
     return mesh_truncated_ellipsoid(shape.endo_semi_axes_mm, shape.epi_semi_axes_mm, -shape.base_height_mm, 0.0,
                                     target_nodes, info, apex_size, shape.map_nodes)
+
+
+def mesh_lv_fresh_process(shape_id: int, seed: int, version: int, target_nodes: int) -> TetMesh:
+    """mesh_lv(lv_shape(shape_id, seed, version), target_nodes), made in a new Python process.
+
+    gmsh's result is tested to be the same in every fresh process, whatever runs beside it; a process
+    that has meshed and solved for hours (a sweep's Ray worker) has been seen to make another mesh of the
+    same shape once, a case not reproduced since. A store's meshes are therefore each made in a fresh
+    process (~1 s more per shape), the condition under which determinism is tested."""
+    import pickle
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parents[1])
+    code = ("import pickle, sys; sys.path.insert(0, sys.argv[1]); from solver.meshing import mesh_lv; "
+            "from solver.shape_model import lv_shape; a = pickle.load(sys.stdin.buffer); "
+            "m = mesh_lv(lv_shape(a[0], a[1], a[2]), a[3]); open(sys.argv[2], 'wb').write(pickle.dumps(m))")
+    with tempfile.TemporaryDirectory(prefix="heartctl-mesh-") as folder:
+        result = Path(folder) / "mesh.pickle"
+        done = subprocess.run([sys.executable, "-c", code, root, str(result)], capture_output=True,
+                              input=pickle.dumps((int(shape_id), int(seed), int(version), int(target_nodes))))
+        if done.returncode != 0 or not result.exists():
+            lines = done.stderr.decode(errors="replace").strip().splitlines() or ["no message"]
+            raise RuntimeError(f"meshing shape {shape_id} (seed {seed}, version {version}) failed: {lines[-1]}")
+        return pickle.loads(result.read_bytes())

@@ -52,3 +52,21 @@ def test_concurrent_meshing_with_user_gmsh_settings_gives_the_same_mesh(tmp_path
     assert all(p.returncode == 0 for p in procs)
     expected = _digests_here()
     assert outputs == [expected] * 3
+
+
+def test_the_sweep_meshes_each_shape_in_a_fresh_process(monkeypatch):
+    """A store's mesh does not depend on the state of the worker that made it: state changed here (a
+    stand-in for whatever a long-lived worker accumulates) reaches meshes made in this process, not the
+    sweep's."""
+    import numpy as np
+
+    import solver.meshing as meshing
+    from orchestrator.tasks import mesh_shape
+    from solver.shape_model import lv_shape
+
+    clean = meshing.mesh_lv(lv_shape(1, 0, 2), 120)
+    monkeypatch.setattr(meshing, "APEX_ELEMENTS_PER_MM", 1.0)
+    assert meshing.mesh_lv(lv_shape(1, 0, 2), 120).n_nodes != clean.n_nodes  # the state does reach this process
+    swept = mesh_shape(1, 0, 120, shape_model_version=2)["mesh"]
+    assert np.array_equal(swept.nodes, clean.nodes) and np.array_equal(swept.tets, clean.tets)
+    assert np.array_equal(swept.endo, clean.endo) and swept.info["size_mm"] == clean.info["size_mm"]
