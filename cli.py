@@ -431,7 +431,8 @@ def unload(ctx: typer.Context, mesh_path: Path = typer.Argument(..., metavar="ME
                                                "auto: the cheapest that met --tolerance-mm on the run's trade table."),
            fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
            tol_mm: float = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4)."),
-           run: list[Path] = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid); "
+           run: list[Path] = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid|auto; "
+                                                              "default: the network shipped with heartctl); "
                                                               "repeat it to average several (an ensemble; the output "
                                                               "gets their per-node spread)."),
            rotations: int = typer.Option(1, "--rotations", help="--method gnn|hybrid: average the network over K turns "

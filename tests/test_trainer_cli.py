@@ -805,6 +805,9 @@ def test_fine_tuning_starts_from_the_parents_weights_and_records_it(trained, tmp
     child = load_run(ft)
     assert child["normalisation"] == parent["normalisation"] and child["optimizer"]["state"]
     assert child["train_config"]["init_from_sha256"] == parent["tensors_sha256"]
+    # the shape range its warnings check is both runs' training shapes (here the same store: each twice)
+    own = len(child["split"]["train"] and {k[0] for k in child["split"]["train"]})
+    assert len(child["train_descriptors"]["shapes"]) == len(parent["train_descriptors"]["shapes"]) + own
     r = run("train", *common, "--run-dir", ft, "--epochs", 2, "--init-from", trained["run"] / "checkpoint.pt")
     assert r.exit_code == 0 and "resuming" in r.output, r.output
     assert_bad_input(run("train", *common, "--run-dir", ft, "--epochs", 3), "init_from_sha256")

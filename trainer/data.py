@@ -476,4 +476,13 @@ def training_data(cfg, cases: StoreCases | None = None) -> DataBundle:
     bundle = build_training_data(cfg.store, cfg.split, cfg.data_seed, cfg.sr, cases, cfg.train_fraction,
                                  cfg.model.uses_response, cfg.labels_seed, None if parent is None else parent.norm)
     bundle.parent = parent
+    if parent is not None:  # the network learned the parent's shapes too: its range is both runs' shapes
+        bundle.train_descriptors = merge_descriptors(parent.train_descriptors, bundle.train_descriptors)
     return bundle
+
+
+def merge_descriptors(first: dict, second: dict) -> dict:
+    """Two training_descriptors tables as one (every list concatenated; "shapes" keeps each store's ids)."""
+    if not first or not second:
+        return dict(first or second)
+    return {k: list(first.get(k, [])) + list(second.get(k, [])) for k in dict.fromkeys([*first, *second])}

@@ -23,6 +23,7 @@ class Parent:
     epoch: int
     best_val_md_mm: float | None
     weights: dict = field(repr=False)
+    train_descriptors: dict = field(repr=False, default_factory=dict)  # the parent's training shapes'
 
     def describe(self) -> str:
         md = f", validation MD {self.best_val_md_mm:.3f} mm on its own labels" if self.best_val_md_mm is not None else ""
@@ -68,7 +69,8 @@ def load_parent(cfg: TrainConfig) -> Parent:
     md = next((r.get("val_md_mm") for r in history if r.get("epoch") == state.get("best_epoch")), None)
     return Parent(path, digest, saved.config_name, Normalisation.from_dict(state["normalisation"]),
                   int(state.get("best_epoch") or state["epoch"]),
-                  float(md) if md is not None and math.isfinite(md) else None, weights)
+                  float(md) if md is not None and math.isfinite(md) else None, weights,
+                  dict(state.get("train_descriptors") or {}))
 
 
 def with_parent(cfg: TrainConfig) -> TrainConfig:

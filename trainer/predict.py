@@ -71,7 +71,8 @@ class Predictor:
 
     @property
     def run_label(self) -> str:
-        return f"{self.cfg.config_name} ({self.kind})"
+        label = f"{self.cfg.config_name} ({self.kind})"
+        return f"shipped with heartctl, {label}, docs/model-card.md" if self.state.get("shipped") else label
 
     def sync(self) -> None:
         if self.device.type == "cuda":

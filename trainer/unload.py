@@ -17,7 +17,8 @@ class UnloadRequest:
     """How to unload: `method`; the inverse FE's `fidelity` preset, `base` condition, `fibres` rule and
     mismatch `tol_mm` (None: the preset's); the network's `runs` (several: an ensemble) and
     `rotations` (test-time turns about the long axis); auto's `tolerance_mm` (p95 nodal error against
-    the converged solution); `check` (inflate a network answer again); `given`: the option names the
+    the converged solution); `check` (inflate a network answer again); no `runs` with a network method:
+    the network shipped with heartctl (trainer.shipped); `given`: the option names the
     user wrote (a default is no choice); `max_updates`: auto's inverse-update budget for hybrid."""
 
     method: str = "fe"
@@ -49,22 +50,25 @@ class UnloadRequest:
             if solver_only:
                 raise ValueError(f"{' and '.join(solver_only)} appl{'y' if len(solver_only) > 1 else 'ies'} to "
                                  f"--method fe|hybrid: --method gnn solves nothing")
-        if (not self.runs) != (self.method == "fe"):
-            raise ValueError(f"--method {self.method} needs --run DIR" if not self.runs
-                             else "--run applies to --method gnn|hybrid")
+        if self.runs and self.method == "fe":
+            raise ValueError("--run applies to --method gnn|hybrid|auto")
 
     def plan(self, n_nodes: int) -> tuple[UnloadPlan, dict | None]:
         """What to run on a mesh of `n_nodes` nodes, and for --method auto the trade table's row that
         chose it (its method, preset, inverse-update budget; the runs an ensemble needs)."""
         asked = {name: getattr(self, name) for name in TRAINED_CHOICES if name in self.given}
-        plan = UnloadPlan(self.method, self.fidelity, self.base, self.fibres, self.tol_mm, self.runs, self.rotations,
-                          asked)
+        runs = self.runs
+        if not runs and self.method != "fe":  # no --run: the network shipped with heartctl
+            from .shipped import shipped_run
+
+            runs = (shipped_run(),)
+        plan = UnloadPlan(self.method, self.fidelity, self.base, self.fibres, self.tol_mm, runs, self.rotations, asked)
         if self.method != "auto":
             return plan, None
         from .trade import choose_method, load_trade
 
-        choice = choose_method(load_trade(self.runs[0]), self.tolerance_mm, n_nodes, with_ensemble=len(self.runs) > 1)
-        runs = self.runs if choice["ensemble"] or choice["method"] != "gnn" else self.runs[:1]
+        choice = choose_method(load_trade(runs[0]), self.tolerance_mm, n_nodes, with_ensemble=len(runs) > 1)
+        runs = runs if choice["ensemble"] or choice["method"] != "gnn" else runs[:1]
         return replace(plan, method=choice["method"], fidelity=choice["preset"] or self.fidelity, runs=runs,
                        max_updates=choice["updates"]), choice
 
