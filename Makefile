@@ -1,7 +1,7 @@
 PY := .venv/bin/python
 VENV_STAMP := .venv/.installed
 
-.PHONY: run test bench clean
+.PHONY: run test bench network clean
 
 $(VENV_STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
@@ -17,6 +17,9 @@ test: $(VENV_STAMP)
 
 bench: $(VENV_STAMP)
 	.venv/bin/heartctl bench solver
+
+network: $(VENV_STAMP)
+	bash scripts/build_network.sh
 
 clean:
 	rm -rf .venv out runs *.egg-info

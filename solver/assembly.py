@@ -187,15 +187,12 @@ class MechanicsProblem:
         if frames.shape[:2] != self.cq.dV.shape:
             raise ValueError(f"fibre frames {frames.shape[:2]} do not match quadrature {self.cq.dV.shape}")
         self.frames = frames
-        # fixed while the reference is: Rᵀ and ∇φ dV [e, q, a, I], and for `_displacement_tangent`
-        # ∇φ M_v [e, q, (v a), J], ∇φᵀ and ∇φᵀ dV [e, q, I, a] (numpy's batched matmul runs about
-        # twice as fast on contiguous operands as on transposed views)
-        ne, nq, na, _ = self.cq.grads.shape
+        # fixed while the reference is: Rᵀ and ∇φ dV [e, q, a, I]; the tangent's own arrays are made
+        # when a tangent is first assembled on this reference (`_tangent_arrays`: a residual alone, as
+        # inverse FE's Jacobian–vector products assemble on moved references, needs none of them)
         self._frames_t = np.ascontiguousarray(np.swapaxes(frames, -1, -2))
-        self._voigt_grads = (self.cq.grads[:, :, None] @ voigt_frame_tensors(frames)).reshape(ne, nq, 6 * na, 3)
         self._grads_dv = self.cq.grads * self.cq.dV[..., None, None]
-        self._grads_t = np.ascontiguousarray(np.swapaxes(self.cq.grads, -1, -2))
-        self._grads_t_dv = np.ascontiguousarray(np.swapaxes(self._grads_dv, -1, -2))
+        self._tangent_geometry = None
         B = self.material.exponent_weights()
         if self.mixed and fid.stabilization > 0:
             h2 = (6.0 * np.sqrt(2.0) * np.abs(self.cq.volumes)) ** (2.0 / 3.0)
@@ -424,6 +421,7 @@ class MechanicsProblem:
         Elements go in chunks whose U takes about 256 KiB, so that a chunk's products stay in cache:
         on 2,786 P2 tets, 26 ms of CPU against 45 ms for all elements at once (2-core box)."""
         ne, nq, na, _ = self.cq.grads.shape
+        voigt_grads, grads_t, grads_t_dv = self._tangent_arrays()
         dV = self.cq.dV
         w = np.empty((ne, nq, 8))
         w[..., :6] = law.tangent_diagonal
@@ -436,9 +434,21 @@ class MechanicsProblem:
         step = max(1, 2 ** 15 // (nq * 8 * 3 * na))  # elements per chunk
         for start in range(0, ne, step):
             c = slice(start, start + step)
-            H[c] = _displacement_chunk(F[c], S[c], P[c], cof[c], w[c], swap_w[c], self._voigt_grads[c],
-                                       self.cq.grads[c], self._grads_t[c], self._grads_t_dv[c], Kuu[c])
+            H[c] = _displacement_chunk(F[c], S[c], P[c], cof[c], w[c], swap_w[c], voigt_grads[c],
+                                       self.cq.grads[c], grads_t[c], grads_t_dv[c], Kuu[c])
         return H
+
+    def _tangent_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """∇φ M_v [e, q, (v a), J], ∇φᵀ and ∇φᵀ dV [e, q, I, a] on the current reference, made once per
+        reference (numpy's batched matmul runs about twice as fast on contiguous operands as on
+        transposed views)."""
+        if self._tangent_geometry is None:
+            ne, nq, na, _ = self.cq.grads.shape
+            self._tangent_geometry = (
+                (self.cq.grads[:, :, None] @ voigt_frame_tensors(self.frames)).reshape(ne, nq, 6 * na, 3),
+                np.ascontiguousarray(np.swapaxes(self.cq.grads, -1, -2)),
+                np.ascontiguousarray(np.swapaxes(self._grads_dv, -1, -2)))
+        return self._tangent_geometry
 
 
 def _displacement_chunk(F, S, P, cof, w, swap_w, voigt_grads, grads, grads_t, grads_t_dv, K):

@@ -42,9 +42,11 @@ class SolveStats:
     wall_s: float = 0.0
     residual_history: list = field(default_factory=list)
     newton_iterations_here: int = 0
+    jacobian_products: int = 0  # inverse FE's Newton–Krylov steps (solver/inverse_newton.py)
 
     def add(self, other: "SolveStats") -> None:
         self.newton_iterations += other.newton_iterations
+        self.jacobian_products += other.jacobian_products
         self.load_steps += other.load_steps
         self.step_cuts += other.step_cuts
         self.assembly_s += other.assembly_s

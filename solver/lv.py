@@ -14,15 +14,20 @@ from .elements import quadrature_barycentric
 from .fibres import FIBRE_RULES, rule_frames, transmural_coordinate
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
-from .progress import report
+from .inverse_newton import newton_krylov_step
 from .linear import SingularMatrix, SparseSolver
 from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
 from .parameters import CaseParameters
+from .progress import report
 from .refine import prolongate, refine_uniform
 
 BASE_CONDITIONS = ("sliding", "clamped", "spring", "heartfem")
 EPI_SPRING_PA_PER_MM = 9.0  # the original pipeline's 90 Pa per unit length, with lengths in cm
+
+
+NEWTON_HALVINGS = 4
+NEWTON_JACOBIAN_FRAMES = False  # the products hold X's fibre frames: as many updates, cheaper products
 
 
 def _supports(mesh: TetMesh, base: str) -> Supports:
@@ -293,18 +298,22 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
         looseness = float(np.clip(1e-3 * err / (u_mean * fid.residual_rtol), 1.0, 1e6))
         z_prev, X_prev = z, X
         for accelerated in (True, False):
-            X = accel.step(X_prev, mismatch) if accelerated else X_prev - mismatch
+            predicted = None
+            if not accelerated:
+                X = X_prev - mismatch
+            elif fid.inverse_step == "newton":
+                X, predicted, products = _newton_update(problem, z_prev, params, mismatch, linsolve, ed_mesh, fid, fibres)
+                stats.jacobian_products += products
+            else:
+                X = accel.step(X_prev, mismatch)
             try:
                 check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
                 problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid, fibres))
-                try:
-                    # start where the trial reference maps exactly onto x_ED (the previous field,
-                    # moved by how far the accelerated step lands from the plain one)
-                    z0 = z_prev + _state_from_vertices(problem, X_prev - mismatch - X)
-                    z, st = inflate(problem, params.pressure_pa, z0=z0, start_load=1.0,
-                                    linsolve=linsolve, looseness=looseness, reuse_factor=reuse_factor)
-                except SolveError:
-                    z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=looseness)
+                # starts: Newton's predicted state, then where the trial reference maps exactly onto x_ED
+                # (the previous field, moved by how far the accelerated step lands from the plain one)
+                starts = [predicted] if predicted is not None else []
+                starts.append(z_prev + _state_from_vertices(problem, X_prev - mismatch - X))
+                z, st = _resolve(problem, params.pressure_pa, starts, linsolve, looseness, reuse_factor)
                 stats.add(st)
                 break
             except (SolveError, MeshError) as exc:
@@ -316,6 +325,41 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
     stats.wall_s = time.perf_counter() - t_start
     raise SolveError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
                      f"(mismatch {history[-1]:.3g} mm)")
+
+
+def _newton_update(problem: MechanicsProblem, z: np.ndarray, params: CaseParameters, mismatch: np.ndarray,
+                   linsolve: SparseSolver, ed_mesh: TetMesh, fid: Fidelity, fibres: str):
+    """The Newton–Krylov trial reference X + δ (solver/inverse_newton.py) and its predicted state, δ halved
+    (up to NEWTON_HALVINGS times) while the trial folds an element or the predicted state inverts one (far
+    from the answer a near-singular Jacobian overshoots); and the Jacobian–vector products it took."""
+    X = problem.nodes.copy()
+    delta, predicted, products = newton_krylov_step(
+        problem, z, params.pressure_pa, mismatch, linsolve,
+        frames_of=(lambda Y: _frames(ed_mesh.with_nodes(Y), params, fid, fibres)) if NEWTON_JACOBIAN_FRAMES else None)
+    for _ in range(NEWTON_HALVINGS):
+        trial = X + delta
+        try:
+            check_geometry(trial, ed_mesh.tets)
+            problem.set_reference(trial, _frames(ed_mesh.with_nodes(trial), params, fid, fibres))
+            if problem.min_jacobian(predicted) > 0:
+                break
+        except MeshError:
+            pass
+        delta, predicted = 0.5 * delta, z + 0.5 * (predicted - z)
+    return X + delta, predicted, products
+
+
+def _resolve(problem: MechanicsProblem, pressure_pa: float, starts: list, linsolve: SparseSolver,
+             looseness: float, reuse_factor: bool):
+    """Equilibrium on problem's (new) reference: Newton at full load from each start in turn, then load
+    stepping from zero."""
+    for z0 in starts:
+        try:
+            return inflate(problem, pressure_pa, z0=z0, start_load=1.0, linsolve=linsolve, looseness=looseness,
+                           reuse_factor=reuse_factor)
+        except SolveError:
+            continue
+    return inflate(problem, pressure_pa, linsolve=linsolve, looseness=looseness)
 
 
 def displacement_at_dofs(inverse: InverseResult) -> np.ndarray:
