@@ -27,6 +27,7 @@ EPI_SPRING_PA_PER_MM = 9.0  # the original pipeline's 90 Pa per unit length, wit
 
 
 NEWTON_HALVINGS = 4
+NEWTON_WHEN_SLOWER = 0.5  # a Newton step once an update cut the mismatch by less than this
 NEWTON_JACOBIAN_FRAMES = False  # the products hold X's fibre frames: as many updates, cheaper products
 
 
@@ -301,7 +302,7 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
             predicted = None
             if not accelerated:
                 X = X_prev - mismatch
-            elif fid.inverse_step == "newton":
+            elif fid.inverse_step == "newton" and len(history) >= 2 and history[-1] > NEWTON_WHEN_SLOWER * history[-2]:
                 X, predicted, products = _newton_update(problem, z_prev, params, mismatch, linsolve, ed_mesh, fid, fibres)
                 stats.jacobian_products += products
             else:

@@ -62,4 +62,5 @@ def test_newton_inverse_lands_where_the_fixed_point_does_in_fewer_updates(thin_l
     fixed = lv.inverse_solve(thin_lv, THIN_SOFT, replace(fid, inverse_step="fixed-point"))
     assert newton.mismatch_mm <= 1e-4 and fixed.mismatch_mm <= 1e-4
     assert np.abs(newton.unloaded_nodes - fixed.unloaded_nodes).max() <= 1e-3
-    assert newton.stats.jacobian_products > 0 and newton.updates < fixed.updates / 2
+    assert newton.stats.jacobian_products > 0 and newton.updates < fixed.updates
+    assert newton.stats.newton_iterations < fixed.stats.newton_iterations, (newton.stats, fixed.stats)
