@@ -228,7 +228,9 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
     """Unloaded geometry X with x(X) = x_ED, by the backward-displacement fixed point
     X ← X − (x(X) − x_ED) (Anderson-accelerated), each re-solve warm-started from the previous
     displacement field shifted so that the trial reference maps exactly onto x_ED (for the plain
-    update, the previous field itself).
+    update, the previous field itself). With the preset's inverse_step "newton", an update that cut the
+    mismatch by less than NEWTON_WHEN_SLOWER is followed by a Newton–Krylov step (`_newton_update`),
+    whose re-solve starts from the state it predicts.
 
     Fibres are recomputed on each trial reference (they are defined on the stress-free state),
     so forward_solve(unloaded) reproduces x_ED. `initial_unloaded` (from the network, or from a
