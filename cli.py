@@ -644,7 +644,9 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
                 network_only: bool = typer.Option(False, "--network-only", help="Score the network (and the ensemble) "
                                                   "alone: no FE or hybrid methods."),
                 first_shape: int = typer.Option(None, "--first-shape", help="First held-out shape id (default: the one "
-                                                "after the run's last); the same for runs trained on different stores.")):
+                                                "after the run's last); the same for runs trained on different stores."),
+                seed: int = typer.Option(None, "--seed", help="Shape-model seed of the held-out shapes (default: the "
+                                         "run's store's); another seed's shapes are all unseen, from --first-shape 0.")):
     """The speed–accuracy trade: held-out ED meshes unloaded by FE (fast, accurate), the network, and the
     network's guess refined by 1, 2, 4 inverse updates or to tolerance, each against the converged
     solution (the reference preset). Writes trade.md, trade.png and trade.json (read by --method auto)."""
@@ -654,7 +656,7 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
     out = out or run[0] / "trade"
     try:
         spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes, network_only=network_only,
-                         first_shape=first_shape).validate()
+                         first_shape=first_shape, seed=seed).validate()
         result = run_trade(spec, out / "solves", progress=typer.echo)
     except _trainer_errors() as exc:
         fail(str(exc))

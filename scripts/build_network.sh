@@ -13,6 +13,7 @@ HEARTCTL=${HEARTCTL:-.venv/bin/heartctl}
 WORK=${WORK:-build/network}
 CPUS=${CPUS:-2}
 STEPS=${STEPS:-"fast reference pretrain finetune score package"}
+SHIP=${SHIP:-finetuned}   # the run scored and packaged (pretrained: the fast-label network alone)
 mkdir -p "$WORK"
 
 # The training box: the paper's (P 4–14 mmHg, C 50–300 Pa, helix 60–70 / −60…−70°), ~350-node meshes of the
@@ -42,12 +43,19 @@ if want finetune; then
         --run-dir "$WORK/finetuned" --epochs 100 --lr 3e-4 --init-from "$WORK/pretrained"
 fi
 if want score; then
-    echo "== scoring on held-out shapes (seed 0, shapes 20–25) against the reference preset"
-    $HEARTCTL evaluate --run "$WORK/finetuned" --store "$WORK/reference.zarr" --reference "$WORK/reference.zarr"
-    $HEARTCTL bench trade --run "$WORK/finetuned" --first-shape 20 --shapes 6 --cases 3 --user-nodes 750 \
+    echo "== scoring against the reference preset: its test split, held-out shapes 20–22 (seed 0), the atlas LV"
+    if [ "$SHIP" = finetuned ]; then  # its test split: shapes of the reference store it never trained on
+        $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" --reference "$WORK/reference.zarr"
+    fi
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 3 --cases 3 --user-nodes 750 \
         --threads "$CPUS" --out "$WORK/trade"
+    .venv/bin/python scripts/bundle_reference_pairs.py "$WORK/$SHIP" "$WORK/trade/solves"
+    if [ -d "${ATLAS:-../shared/fixtures/l2u}" ]; then
+        .venv/bin/python scripts/score_atlas.py "${ATLAS:-../shared/fixtures/l2u}" --run "$WORK/$SHIP" \
+            --units cm --cache "$WORK/atlas"
+    fi
 fi
 if want package; then
-    echo "== packaging the network as heartctl's shipped one"
-    .venv/bin/python scripts/ship_network.py "$WORK/finetuned" "$WORK/trade"
+    echo "== packaging the network as heartctl's shipped one (trainer/shipped/)"
+    .venv/bin/python scripts/ship_network.py "$WORK/$SHIP" "$WORK/trade"
 fi

@@ -3,6 +3,7 @@ manifest of digests), the digest check before use, and `unload` without --run.""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -81,3 +82,27 @@ def test_unload_without_run_uses_the_shipped_network(packaged, tmp_path, monkeyp
     assert not (tmp_path / "un2.vtu").exists()
     r = run("unload", ed, *PARAMS, "--method", "fe", "--run", folder, "-o", tmp_path / "un3.vtu")
     assert r.exit_code == 2 and "--run applies to --method gnn|hybrid|auto" in r.output
+
+
+BUNDLED = Path(__file__).parent / "data" / "shipped_reference_pairs.npz"
+
+
+def test_the_shipped_network_scores_as_its_model_card_says_on_bundled_reference_pairs():
+    """Three held-out meshes of its shape family with their `reference` unloaded geometry
+    (scripts/bundle_reference_pairs.py): the network's mean node error is what its manifest recorded when
+    it was packaged (to 2 µm: another machine's arithmetic), and no pair is twice as far."""
+    from solver.mesh import make_mesh
+    from solver.parameters import CaseParameters
+    from trainer.predict import unload_with_network
+
+    run = shipped.shipped_run()  # the digest check
+    data = np.load(BUNDLED)
+    errors = []
+    for i in range(int(data["count"])):
+        mesh = make_mesh(data[f"{i}_nodes"], data[f"{i}_tets"].astype(np.int64), data[f"{i}_endo"].astype(np.int64),
+                         data[f"{i}_epi"].astype(np.int64), data[f"{i}_base"].astype(np.int64))
+        out = unload_with_network(mesh, CaseParameters(*data[f"{i}_params"]), [run])
+        errors.append(np.linalg.norm(out["unloaded_nodes"] - data[f"{i}_reference"], axis=1))
+    card = json.loads(shipped.MANIFEST.read_text())["bundled_pairs_mean_mm"]
+    assert np.mean([e.mean() for e in errors]) == pytest.approx(card, abs=2e-3)
+    assert all(e.mean() <= 2.0 * card for e in errors)

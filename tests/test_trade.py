@@ -92,6 +92,9 @@ def test_box_cases_mid_then_hardest_corner():
     assert [c.shape_id for c in later] == [20, 21]  # the held-out shapes of a run on a larger store
     with pytest.raises(TrainerError, match="--first-shape 3: the run's store holds shapes 0–3"):
         held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350}, TradeSpec(("r",), first_shape=3))
+    other = held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350, "seed": 1},
+                           TradeSpec(("r",), shapes=2, cases=1, user_nodes=0, seed=0))
+    assert [(c.shape_id, c.seed) for c in other] == [(0, 0), (1, 0)]  # another seed: none of its shapes was trained on
 
 
 def _table(rows):

@@ -42,7 +42,8 @@ class TradeSpec:
     (0: the training resolution only); hybrid_updates: the budgets of the network-guess hybrids;
     check_preset: the preset of the a-posteriori re-inflation; network_only: score the network (and
     its ensemble) alone, no FE or hybrid methods; first_shape: the first held-out shape id (None: the
-    one after the run's last; runs trained on different stores are then scored on the same shapes)."""
+    one after the run's last; runs trained on different stores are then scored on the same shapes); seed:
+    the held-out shapes' shape-model seed (None: the run's store's; another seed holds no training shape)."""
 
     runs: tuple[str, ...]
     shapes: int = 2
@@ -52,6 +53,7 @@ class TradeSpec:
     check_preset: str = "accurate"
     network_only: bool = False
     first_shape: int | None = None
+    seed: int | None = None  # the held-out shapes' seed (None: the run's store's)
 
     def validate(self) -> "TradeSpec":
         if not self.runs:
@@ -113,14 +115,17 @@ def held_out_cases(fingerprint: dict, spec: TradeSpec) -> list[HeldOutCase]:
                            "store made by heartctl generate")
     seen = [int(s) for s in fingerprint.get("shape_nodes", {})] or [int(grid.get("shapes", 1)) - 1]
     first = max(max(seen) + 1, int(grid.get("shapes", 0)))
-    if spec.first_shape is not None:
+    store_seed = int(fingerprint.get("seed") or 0)
+    seed = store_seed if spec.seed is None else int(spec.seed)
+    if seed != store_seed:  # no shape of another seed is a training shape
+        first = 0 if spec.first_shape is None else spec.first_shape
+    elif spec.first_shape is not None:
         if spec.first_shape < first:
             raise TrainerError(f"--first-shape {spec.first_shape}: the run's store holds shapes 0–{first - 1} of this "
                                f"seed; held-out shapes start at {first} or later")
         first = spec.first_shape
     nodes = fingerprint.get("mesh_nodes") or int(np.mean(list(fingerprint["shape_nodes"].values())))
     sizes = [("training", int(nodes))] + ([("user", spec.user_nodes)] if spec.user_nodes else [])
-    seed = int(fingerprint.get("seed") or 0)
     return [HeldOutCase(first + s, seed, n, res, name, params)
             for s in range(spec.shapes) for res, n in sizes for name, params in box_cases(grid, spec.cases)]
 

@@ -81,6 +81,14 @@ def package_run(run_dir: Path, trade_dir: Path | None, card: dict, folder: Path 
     return out
 
 
+def record(fields: dict, manifest: Path | None = None) -> dict:
+    """Add `fields` (measurements of the packaged network) to the manifest; returns it."""
+    manifest = manifest or MANIFEST
+    out = {**json.loads(manifest.read_text()), **fields}
+    manifest.write_text(json.dumps(out, indent=1) + "\n")
+    return out
+
+
 def half_precision_error_mm(run_dir: Path, folder: Path, items: list) -> float:
     """Largest nodal difference (mm) between the run's full-precision network and the packaged
     half-precision one on `items` ((MeshFeatures, params, key) as Predictor.predict_many takes)."""
