@@ -163,7 +163,8 @@ def test_bad_checkpoint_and_run_dirs(trained, tmp_path):
     o = tmp_path / "o.vtu"
     assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "--run", bad, "-o", o),
                      "cannot read checkpoint")
-    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "gnn", "-o", o), "--run")
+    assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--method", "fe", "--run", bad, "-o", o),
+                     "--run applies to --method gnn|hybrid|auto")
     assert_bad_input(run("unload", ed, "--pressure", 8, "--stiffness", 100, "--run", trained["run"], "-o", o), "--run")
     assert not o.exists()
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", bad, "--no-ray"), "cannot read checkpoint")
