@@ -34,10 +34,13 @@ $HEARTCTL generate --local --fidelity reference --pressures 8 --stiffness 100 --
 $HEARTCTL evaluate --run "$OUT/run_local" --store "$OUT/local.zarr" --reference "$OUT/local_reference.zarr"
 
 echo
-echo "== 6. Unload one ED mesh: by the network (--check: inflated again, how far it lands from the ED mesh),"
-echo "   then by inverse FE (8 mmHg, C = 150 Pa, helix +60/−60°)"
+echo "== 6. Unload one ED mesh: by the network just trained (--check: inflated again, how far it lands from the"
+echo "   ED mesh), by the network shipped with heartctl (docs/model-card.md), then by inverse FE"
+echo "   (8 mmHg, C = 150 Pa, helix +60/−60°)"
 $HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --method gnn --run "$OUT/run_local" --check -o "$OUT/shape0_unloaded_gnn.vtu"
+$HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
+    --method gnn -o "$OUT/shape0_unloaded_shipped.vtu"
 $HEARTCTL unload "$OUT/shape0_ed.vtu" --pressure 8 --stiffness 150 --endo 60 --epi -60 \
     --method fe --fidelity fast -o "$OUT/shape0_unloaded.vtu"
 
