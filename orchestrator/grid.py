@@ -190,13 +190,9 @@ def stored_shape_model_version(attrs: dict) -> int:
 
 def file_digest(path: str) -> str:
     """sha256 of a file (user meshes are identified by content, not by name)."""
-    import hashlib
+    from storage.disk import file_sha256
 
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return file_sha256(path)
 
 
 MESH_SUFFIXES = (".vtu", ".vtk", ".msh", ".xdmf", ".mesh", ".med", ".inp", ".ply", ".stl", ".obj", ".off")

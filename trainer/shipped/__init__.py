@@ -7,12 +7,13 @@ the network is used, and what the network was trained and scored on.
 `package_run` makes that folder from a trained run; `shipped_run` returns it, checked."""
 from __future__ import annotations
 
-import hashlib
 import json
 import shutil
 from pathlib import Path
 
 import torch
+
+from storage.disk import file_sha256
 
 from ..checkpoint import CHECKPOINT_NAME, load_run, save_checkpoint
 from ..config import TrainerError
@@ -23,14 +24,6 @@ MANIFEST = HERE / "manifest.json"
 SHIPPED_PARTS = ("kind", "train_config", "normalisation", "fingerprint", "split", "labelled", "train_descriptors",
                  "epoch", "best_val", "best_epoch", "history", "stopped_early", "finished", "n_parameters")
 MAX_BYTES = 10 * 2**20
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def shipped_run(folder: Path | None = None, manifest: Path | None = None) -> Path:
