@@ -1309,6 +1309,8 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     except (*_store_errors(), MeshError) as exc:
         fail(str(exc))
     _warn_high_pressures(sweep.high_pressures())
+    if not dry_run and address is None:
+        _sweep_budget(sweep)
     if dry_run:
         _print_plan(sweep.plan(warm_start), as_json)
     elif sweep.nothing_to_run(retry_damaged):
@@ -1316,6 +1318,26 @@ def generate(shapes: int = typer.Option(None, "--shapes", help="Number of shapes
     else:
         report = _run_sweep(sweep, where, warm_start, retry_damaged, progress=not as_json)
         _print_sweep_report(report, store, retry_damaged, as_json)
+
+
+def _sweep_budget(sweep) -> None:
+    """A local sweep whose workers' solves (solver.budget's estimate of one pair of a ~--nodes mesh at the
+    sweep's preset, times the workers) need more memory than this machine has available: refused in one
+    line (exit 2), naming how many workers would fit. User meshes (--meshes) are not estimated."""
+    from solver.budget import estimate_for_nodes
+
+    spec = sweep.spec
+    if spec.meshes:
+        return
+    est = estimate_for_nodes(spec.fidelity, spec.nodes, inverse=True)
+    workers = sweep.request.local_cpus or os.cpu_count() or 1
+    available = _available_memory()
+    if est.peak_bytes * workers > available:
+        fit = int(available // est.peak_bytes)
+        instead = f"--num-cpus {fit}" if fit >= 1 else "a coarser --nodes or a cheaper --fidelity"
+        fail(f"{workers} workers solving {spec.fidelity} pairs of ~{spec.nodes:,}-node meshes need about "
+             f"{_size(est.peak_bytes)} each, {_size(est.peak_bytes * workers)} in all; {_size(available)} are "
+             f"available: use {instead}")
 
 
 def _warn_high_pressures(high: list[float], flag: str = "--pressures") -> None:

@@ -68,11 +68,25 @@ def test_a_solve_that_cannot_fit_is_refused_in_one_line(tmp_path, monkeypatch, c
     assert not out.exists()
 
 
-def test_a_network_answer_needs_no_solve_budget(monkeypatch):
-    """unload --method gnn solves nothing: the memory check does not apply (it fails later, for want of --run)."""
+def test_a_network_answer_needs_no_solve_budget(tmp_path, monkeypatch):
+    """unload --method gnn solves nothing: the memory check does not apply (the shipped network answers)."""
     monkeypatch.setattr(cli, "_available_memory", lambda: 50e6)
-    r = run("unload", MESH, "--pressure", 8, "--stiffness", 150, "--method", "gnn", "-o", "x.vtu")
-    assert "needs about" not in r.output
+    r = run("unload", MESH, "--pressure", 8, "--stiffness", 150, "--method", "gnn", "-o", tmp_path / "x.vtu")
+    assert r.exit_code == 0 and "needs about" not in r.output, r.output
+
+
+def test_a_sweep_whose_workers_cannot_fit_is_refused_in_one_line(tmp_path, monkeypatch):
+    """generate estimates one pair's memory at its preset and --nodes, times its local workers, before Ray
+    starts: too much is one line naming how many workers fit, and no store is made."""
+    monkeypatch.setattr(cli, "_available_memory", lambda: 40e9)
+    store = tmp_path / "s.zarr"
+    per_worker = estimate_for_nodes("reference", 5_000, inverse=True).peak_bytes
+    assert 20e9 < per_worker < 40e9  # one worker fits, two do not
+    r = run("generate", "--shapes", 1, "--nodes", 5_000, "--fidelity", "reference", "--num-cpus", 2, "--store", store)
+    assert r.exit_code == 2, r.output
+    lines = r.output.strip().splitlines()
+    assert len(lines) == 1 and "2 workers solving reference pairs of ~5,000-node meshes" in lines[0], r.output
+    assert lines[0].endswith("use --num-cpus 1") and not store.exists()
 
 
 def test_a_long_solve_shows_its_steps_and_a_short_one_nothing(tmp_path, monkeypatch):
