@@ -8,10 +8,11 @@ moving the reference by v with z fixed changes the residual by ∂R/∂X · v, a
     J v = v + [δz]ᵤ (the displacement part at the vertices),
 
 with ∂R/∂X · v taken as a forward difference (R(z; X + εv) − R(z; X)) / ε, ε|v|∞ = FD_STEP_MM. Each product
-costs one residual assembly on a moved reference and one back-substitution with K's factorisation. The
-fibre frames are held at X's in the product (they move with X to second order in the update's effect on
-the answer: the Jacobian is then inexact, which slows Newton's convergence, not its answer, since the
-mismatch G itself is evaluated with the frames recomputed on every trial reference).
+costs one residual assembly on a moved reference and one back-substitution with K's factorisation.
+Inverse FE holds the fibre frames at X's in the product: the Jacobian then leaves out how the fibres turn
+with the reference, which slows Newton's convergence, not its answer (the mismatch G is evaluated with the
+frames recomputed on every trial reference). Recomputing them in every product (`frames_of`) saved an
+update on a thin wall but cost more time than it saved.
 
 GMRES solves J δ = −G to a relative residual `rtol`. Where the fixed point X ← X − G contracts slowly
 (a thin, soft wall: ‖∂u/∂X‖ near 1), Newton's steps still converge fast."""
