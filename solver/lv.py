@@ -301,17 +301,20 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
         looseness = float(np.clip(1e-3 * err / (u_mean * fid.residual_rtol), 1.0, 1e6))
         z_prev, X_prev = z, X
         for accelerated in (True, False):
-            predicted = None
+            predicted = frames = None
             if not accelerated:
                 X = X_prev - mismatch
             elif fid.inverse_step == "newton" and len(history) >= 2 and history[-1] > NEWTON_WHEN_SLOWER * history[-2]:
-                X, predicted, products = _newton_update(problem, z_prev, params, mismatch, linsolve, ed_mesh, fid, fibres)
+                X, predicted, frames, products = _newton_update(problem, z_prev, params, mismatch, linsolve, ed_mesh,
+                                                                fid, fibres)
                 stats.jacobian_products += products
             else:
                 X = accel.step(X_prev, mismatch)
             try:
                 check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
-                problem.set_reference(X, _frames(ed_mesh.with_nodes(X), params, fid, fibres))
+                if frames is None:  # (a Newton trial's frames were made when it was checked)
+                    frames = _frames(ed_mesh.with_nodes(X), params, fid, fibres)
+                problem.set_reference(X, frames)
                 # starts: Newton's predicted state, then where the trial reference maps exactly onto x_ED
                 # (the previous field, moved by how far the accelerated step lands from the plain one)
                 starts = [predicted] if predicted is not None else []
@@ -334,7 +337,8 @@ def _newton_update(problem: MechanicsProblem, z: np.ndarray, params: CaseParamet
                    linsolve: SparseSolver, ed_mesh: TetMesh, fid: Fidelity, fibres: str):
     """The Newton–Krylov trial reference X + δ (solver/inverse_newton.py) and its predicted state, δ halved
     (up to NEWTON_HALVINGS times) while the trial folds an element or the predicted state inverts one (far
-    from the answer a near-singular Jacobian overshoots); and the Jacobian–vector products it took."""
+    from the answer a near-singular Jacobian overshoots), the trial's fibre frames (None when every
+    halving failed) and the Jacobian–vector products it took."""
     X = problem.nodes.copy()
     delta, predicted, products = newton_krylov_step(
         problem, z, params.pressure_pa, mismatch, linsolve,
@@ -343,13 +347,14 @@ def _newton_update(problem: MechanicsProblem, z: np.ndarray, params: CaseParamet
         trial = X + delta
         try:
             check_geometry(trial, ed_mesh.tets)
-            problem.set_reference(trial, _frames(ed_mesh.with_nodes(trial), params, fid, fibres))
+            frames = _frames(ed_mesh.with_nodes(trial), params, fid, fibres)
+            problem.set_reference(trial, frames)
             if problem.min_jacobian(predicted) > 0:
-                break
+                return trial, predicted, frames, products
         except MeshError:
             pass
         delta, predicted = 0.5 * delta, z + 0.5 * (predicted - z)
-    return X + delta, predicted, products
+    return X + delta, predicted, None, products
 
 
 def _resolve(problem: MechanicsProblem, pressure_pa: float, starts: list, linsolve: SparseSolver,
