@@ -10,14 +10,14 @@ import numpy as np
 
 from solver.fidelity import get_fidelity
 from solver.fibres import check_fibre_rule
-from solver.lv import BASE_CONDITIONS
+from solver.parameters import BASE_CONDITIONS
 from solver.meshing import MESH_LEVELS, check_node_target
 from solver.parameters import PAPER_GRID, CaseParameters
 from solver.shape_model import SHAPE_MODEL_VERSION, check_version
 
 AXES = ("pressure_mmhg", "stiffness_pa", "helix_endo_deg", "helix_epi_deg")
-AXIS_FLAGS = {"pressure_mmhg": "--pressures", "stiffness_pa": "--stiffness", "helix_endo_deg": "--endo",
-              "helix_epi_deg": "--epi"}
+AXIS_OPTIONS = {"pressure_mmhg": "pressures", "stiffness_pa": "stiffness", "helix_endo_deg": "endo",
+                "helix_epi_deg": "epi"}  # the request's name for each axis
 PAPER_SHAPES = 60
 DEFAULT_FIDELITY = "accurate"  # the solver's measurements put `fast` ~0.7 mm from `accurate` (> 0.1 mm)
 ROUNDTRIP_TOL_FACTOR = 10.0  # accept a pair when the forward round trip is within 10× the inverse tolerance
@@ -49,16 +49,16 @@ class SweepSpec:
     def validate(self) -> "SweepSpec":
         """Raise ValueError (one line) for an unusable request."""
         if not isinstance(self.shapes, int) or self.shapes < 1:
-            raise ValueError(f"--shapes must be ≥ 1, got {self.shapes}")
+            raise ValueError(f"`shapes` must be ≥ 1, got {self.shapes}")
         for axis in AXES:
             values = getattr(self, axis)
-            flag = AXIS_FLAGS[axis]
+            name = f"`{AXIS_OPTIONS[axis]}`"
             if len(values) == 0:
-                raise ValueError(f"{flag} is empty: the grid has no cases")
+                raise ValueError(f"{name} is empty: the grid has no cases")
             if len(set(values)) != len(values):
-                raise ValueError(f"{flag} has repeated values: {', '.join(f'{v:g}' for v in values)}")
+                raise ValueError(f"{name} has repeated values: {', '.join(f'{v:g}' for v in values)}")
             if not all(math.isfinite(v) for v in values):
-                raise ValueError(f"{flag} must be finite numbers")
+                raise ValueError(f"{name} must be finite numbers")
         # every value is checked by the solver's own parameter rules (ParameterError is a ValueError)
         mids = [getattr(self, a)[0] for a in AXES]
         for i, axis in enumerate(AXES):
@@ -66,14 +66,14 @@ class SweepSpec:
                 CaseParameters(*(v if j == i else mids[j] for j in range(len(AXES))))
         get_fidelity(self.fidelity)
         if self.seed < 0:
-            raise ValueError(f"--seed must be ≥ 0, got {self.seed}")
+            raise ValueError(f"`seed` must be ≥ 0, got {self.seed}")
         check_node_target(self.nodes)
         if self.base not in BASE_CONDITIONS:
-            raise ValueError(f"--base must be one of {', '.join(BASE_CONDITIONS)}, got {self.base!r}")
+            raise ValueError(f"`base` must be one of {', '.join(BASE_CONDITIONS)}, got {self.base!r}")
         check_fibre_rule(self.fibres)
         check_version(self.shape_model_version)
         if self.meshes and self.shapes != len(self.meshes):
-            raise ValueError(f"--shapes {self.shapes} does not match the {len(self.meshes)} mesh files given")
+            raise ValueError(f"shapes={self.shapes} does not match the {len(self.meshes)} mesh files given")
         return self
 
     def mesh_source(self, shape_id: int) -> tuple:
@@ -135,7 +135,7 @@ class SweepSpec:
         """The sweep that made a store; ValueError for a store of imported pairs (no sweep made it)."""
         if attrs.get("shape_source") == "imported":
             raise ValueError(f"this store holds pairs imported from {attrs.get('source', 'another dataset')}; "
-                             f"generate cannot extend it (use a new --store)")
+                             f"generate cannot extend it (use a new `store`)")
         g = attrs["grid"]
         return cls(int(g["shapes"]), *(tuple(g[a]) for a in AXES), fidelity=attrs["fidelity"],
                    seed=int(attrs["seed"]), nodes=int(attrs["mesh_nodes"]), base=attrs.get("base", "sliding"),
@@ -151,12 +151,12 @@ class SweepSpec:
         if not np.array_equal(np.asarray(attrs.get("case_params"), dtype=float).reshape(-1, 4), stored.case_params()):
             out.append("the store's case_params do not follow its grid (edited by hand?); it cannot be resumed")
         if self.shapes < stored.shapes:  # a larger count grows the store (PairStore.grow_shapes)
-            out.append(f"--shapes {self.shapes} (store has {stored.shapes}; shrinking a store is not supported)")
+            out.append(f"shapes={self.shapes} (store has {stored.shapes}; shrinking a store is not supported)")
         for a in AXES:
             if not np.array_equal(np.asarray(getattr(stored, a)), np.asarray(getattr(self, a))):
-                out.append(f"{AXIS_FLAGS[a]} {_fmt(getattr(self, a))} (store has {_fmt(getattr(stored, a))})")
+                out.append(f"{AXIS_OPTIONS[a]}={_fmt(getattr(self, a))} (store has {_fmt(getattr(stored, a))})")
         if stored.fidelity != self.fidelity:
-            out.append(f"--fidelity {self.fidelity} (store has {stored.fidelity})")
+            out.append(f"fidelity={self.fidelity} (store has {stored.fidelity})")
         else:  # the same preset name, but its settings edited since (a store must not mix two solvers)
             now = self.store_attrs()["fidelity_settings"]
             saved = attrs.get("fidelity_settings") or {}
@@ -164,21 +164,21 @@ class SweepSpec:
             if changed:
                 out.append(f"the {self.fidelity} preset's settings ({', '.join(changed)})")
         if stored.seed != self.seed:
-            out.append(f"--seed {self.seed} (store has {stored.seed})")
+            out.append(f"seed={self.seed} (store has {stored.seed})")
         if stored.shape_model_version != self.shape_model_version and not self.meshes:
             out.append(f"shape model version {self.shape_model_version} (store has {stored.shape_model_version})")
         if stored.nodes != self.nodes:
-            out.append(f"--nodes {self.nodes} (store has {stored.nodes})")
+            out.append(f"nodes={self.nodes} (store has {stored.nodes})")
         if stored.base != self.base:
-            out.append(f"--base {self.base} (store has {stored.base})")
+            out.append(f"base={self.base} (store has {stored.base})")
         if stored.fibres != self.fibres:
-            out.append(f"--fibres {self.fibres} (store has {stored.fibres})")
+            out.append(f"fibres={self.fibres} (store has {stored.fibres})")
         stored_digests = [m["sha256"] for m in attrs.get("meshes", [])]
         if stored_digests != [file_digest(m) for m in self.meshes]:
-            out.append(f"--meshes ({len(self.meshes)} files; the store was made from "
+            out.append(f"`meshes` ({len(self.meshes)} files; the store was made from "
                        f"{len(stored_digests) or 'the shape model'}{' other files' if stored_digests else ''})")
         elif self.meshes and stored.mesh_units != self.mesh_units:
-            out.append(f"--units {self.mesh_units} (store has {stored.mesh_units})")
+            out.append(f"units={self.mesh_units} (store has {stored.mesh_units})")
         return out
 
 
@@ -209,7 +209,7 @@ def find_meshes(pattern: str) -> tuple:
     else:
         files = sorted(str(Path(p).resolve()) for p in glob.glob(pattern) if Path(p).is_file())
     if not files:
-        raise ValueError(f"--meshes {pattern}: no mesh files found")
+        raise ValueError(f"meshes={pattern}: no mesh files found")
     return tuple(files)
 
 
@@ -217,7 +217,7 @@ def _fmt(values) -> str:
     return ",".join(f"{v:g}" for v in values)
 
 
-def parse_axis(flag: str, text: str | None) -> tuple | None:
+def parse_axis(name: str, text: str | None) -> tuple | None:
     """'4,6,8' (commas and/or spaces) → (4.0, 6.0, 8.0); None stays None; '' → () (an empty grid)."""
     if text is None:
         return None
@@ -225,7 +225,7 @@ def parse_axis(flag: str, text: str | None) -> tuple | None:
     try:
         return tuple(float(p) for p in parts)
     except ValueError:
-        raise ValueError(f"{flag} must be comma-separated numbers, got {text!r}") from None
+        raise ValueError(f"`{name}` must be comma-separated numbers, got {text!r}") from None
 
 
 LOCAL_SPEC = SweepSpec(shapes=3, pressure_mmhg=(8.0, 12.0), stiffness_pa=(100.0, 200.0), helix_endo_deg=(60.0,),

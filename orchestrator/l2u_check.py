@@ -13,11 +13,12 @@ import numpy as np
 from solver.fidelity import Fidelity, get_fidelity
 from solver.forward import SolveError
 from solver.lv import forward_solve, inverse_solve
-from solver.parameters import CaseParameters
-from storage.store import PARAM_NAMES, PairReader, StoreError
+from solver.parameters import SOLVE_DIRECTIONS, CaseParameters
+from storage.location import StoreError
+from storage.reader import PairReader
+from storage.schema import PARAM_NAMES
 
 
-DIRECTIONS = ("forward", "inverse")
 
 
 def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | str, base: str,
@@ -27,7 +28,7 @@ def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | s
     inflate their unloaded mesh, compare with their ED mesh; "inverse": unload their ED mesh (inverse
     FE), compare with their unloaded mesh. Either way `mismatch_*` is the nodal distance to their
     geometry and `ours_loading_mean_mm` the mean distance between our two geometries."""
-    if direction not in DIRECTIONS:
+    if direction not in SOLVE_DIRECTIONS:
         raise ValueError(f"direction must be forward or inverse, got {direction!r}")
     case = reader.case(shape_id, k)
     mesh = reader.mesh(shape_id)
@@ -82,18 +83,18 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
     from solver.fibres import check_fibre_rule
 
     if not (stiffness_factor > 0):
-        raise ValueError(f"--stiffness-factor must be > 0, got {stiffness_factor}")
+        raise ValueError(f"`stiffness_factor` must be > 0, got {stiffness_factor}")
     check_fibre_rule(fibres)
     if quad_degree is not None and not 0 <= quad_degree <= 6:
-        raise ValueError(f"--quad-degree must be 1–6 (0: the preset's), got {quad_degree}")
+        raise ValueError(f"`quad_degree` must be 1–6 (0: the preset's), got {quad_degree}")
     quad_degree = quad_degree or None
     if limit is not None and limit < 1:
-        raise ValueError(f"--limit must be ≥ 1 (leave it out for every pair), got {limit}")
+        raise ValueError(f"`limit` must be ≥ 1 (leave it out for every pair), got {limit}")
     reader = PairReader(location)
     if reader.attrs.get("shape_source") != "imported" or reader.attrs.get("fidelity") != "imported":
         raise StoreError(f"{location} was not imported from the original paper's dataset (it holds "
                          f"{reader.attrs.get('fidelity')} pairs of heartctl's own): bench l2u compares with their "
-                         f"pipeline's geometry; import it with `heartctl import-l2u DIR --store …`")
+                         f"pipeline's geometry; import it with heartctl's import-l2u")
     keys = reader.done_cases()[:limit] if limit is not None else reader.done_cases()
     fid = get_fidelity(fidelity)
     if quad_degree is not None:

@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 import time
 
-from storage.store import CHUNK_PER_CASE, DONE, FAILED, PairReader, case_layout, encoded_case_bytes
+from storage.reader import PairReader
+from storage.schema import CHUNK_PER_CASE, case_layout, encoded_case_bytes
 
 from .grid import MAX_CHAIN, SweepSpec
 from .tasks import mesh_shape, run_case, run_chain
@@ -26,16 +27,10 @@ def store_objects(shapes: int, cases_per_shape: int, sharded: bool = True) -> in
 def existing_counts(location: str) -> dict:
     """Done and failed cases of the store's shapes, and how many shapes it has meshed."""
     try:
-        reader = PairReader(location)
+        counts = PairReader(location).counts()
     except Exception:
         return {"done": 0, "failed": 0, "meshed": 0}
-    done = failed = 0
-    shape_ids = reader.shape_ids()
-    for s in shape_ids:
-        st = reader.status(s)
-        done += int((st == DONE).sum())
-        failed += int((st == FAILED).sum())
-    return {"done": done, "failed": failed, "meshed": len(shape_ids)}
+    return {"done": counts.done, "failed": counts.failed, "meshed": counts.meshed}
 
 
 def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:

@@ -47,9 +47,9 @@ class RayAddress:
         if self.connect_timeout_s is None:
             return
         if self.address is None:
-            raise ValueError("--connect-timeout applies to --address (joining a cluster); a local Ray starts here")
+            raise ValueError("`connect_timeout` applies to `address` (joining a cluster); a local Ray starts here")
         if not (math.isfinite(self.connect_timeout_s) and self.connect_timeout_s > 0):
-            raise ValueError(f"--connect-timeout must be a finite number of seconds > 0, got {self.connect_timeout_s:g}")
+            raise ValueError(f"`connect_timeout` must be a finite number of seconds > 0, got {self.connect_timeout_s:g}")
 
     @property
     def timeout_s(self) -> float:
@@ -141,7 +141,7 @@ def join_ray(address: str, timeout_s: float = CONNECT_TIMEOUT_S, **kwargs):
             where = "" if address == f"{target[0]}:{target[1]}" else f"{target[0]}:{target[1]}: "
             raise RayConnectError(f"no Ray cluster answers at {address} ({where}{why}"
                                   f"{f' after {timeout_s:g} s' if why == 'timed out' else ''}); start it with "
-                                  f"`ray start --head` or check HOST:PORT") from None
+                                  f"`ray start` on the head node or check HOST:PORT") from None
     outcome: dict = {}
 
     def connect():
@@ -174,7 +174,7 @@ def join_ray(address: str, timeout_s: float = CONNECT_TIMEOUT_S, **kwargs):
     captured.close()
     if thread.is_alive():
         raise RayConnectError(f"Ray at {address} did not connect within {timeout_s:g} s (is it a Ray head's GCS port, "
-                              f"and this machine's Ray the same version?){_auth_hint(said)}; raise --connect-timeout "
+                              f"and this machine's Ray the same version?){_auth_hint(said)}; raise `connect_timeout` "
                               f"if it is slow")
     if "error" in outcome:
         exc = outcome["error"]

@@ -24,13 +24,15 @@ import numpy as np
 
 from storage.disk import is_disk_full
 from storage.lock import LOCK_NAME, WriterLock, check_free
-from storage.store import DONE, FAILED, PENDING, PairStore, inspect_store, object_store_problem, stats_row
+from storage.location import object_store_problem
+from storage.schema import DONE, FAILED, PENDING, inspect_store
+from storage.writer import PairStore, stats_row
 
 from .grid import MAX_CHAIN, SweepSpec, pressure_chains
+from .pacing import HeldResults, InFlightLimit, SweepProgress, cpus_used, node_cpus
 
 TASK_MAX_RETRIES = 3  # worker process crash / node loss
 FLUSH_INTERVAL_S = 2.0
-WRITE_HOLD_S = 30.0  # the longest a returned case waits to be written into its shape's shard
 
 
 class SweepConflict(ValueError):
@@ -62,7 +64,8 @@ class StoreLostError(RuntimeError):
 
 def _cases_on_disk(location: str) -> int | None:
     """Done cases as the store on disk records them (what a rerun finds), or None if it cannot be read."""
-    from storage.store import PairReader, remove_partial_files
+    from storage.reader import PairReader
+    from storage.writer import remove_partial_files
 
     try:
         remove_partial_files(location)  # a write cut short leaves its temporary file: give the space back
@@ -113,17 +116,19 @@ class SweepReport:
 # --------------------------------------------------------------------------- request checks (no Ray, no writes)
 
 
-def check_request(spec: SweepSpec, location: str, for_writing: bool = True, retry_damaged: bool = False) -> dict | None:
+def check_request(spec: SweepSpec, location: str, for_writing: bool = True, retry_damaged: bool = False,
+                  reader=None) -> dict | None:
     """Validate the spec and the store it targets, read-only. Returns the store's attributes
     (None when the store is new). Raises ValueError / StoreError / SweepConflict (one line).
     `for_writing` (not for a dry run) also needs a writable store no other driver is writing.
     Damage that shows without reading the cases (a shape's arrays not what the schema implies, a
-    status code out of range) is refused unless `retry_damaged`, which repairs it."""
+    status code out of range) is refused unless `retry_damaged`, which repairs it. `reader`: the
+    store opened already (a PairReader), read instead of opening it again."""
     spec.validate()
     if for_writing and str(location).startswith("memory://"):
         raise ValueError(f"store {location}: a memory:// store vanishes when generate exits; give a folder or an "
                          f"object-store URL (s3://…)")
-    attrs = inspect_store(location)
+    attrs = reader.attrs if reader is not None else inspect_store(location)
     if for_writing:
         _check_writable(location)
     if attrs is not None and for_writing:
@@ -132,36 +137,35 @@ def check_request(spec: SweepSpec, location: str, for_writing: bool = True, retr
         conflicts = spec.conflicts(attrs)
         if conflicts:
             raise _conflict(location, conflicts)
-        _check_table_damage(location, retry_damaged)
-        _check_shape_tables(location, np.asarray(attrs["case_params"], dtype=float))
+        from storage.reader import PairReader
+
+        reader = reader or PairReader(location)
+        _check_table_damage(reader, location, retry_damaged)
+        _check_shape_tables(reader, location, np.asarray(attrs["case_params"], dtype=float))
     return attrs
 
 
-def _check_table_damage(location: str, retry_damaged: bool) -> None:
+def _check_table_damage(reader, location: str, retry_damaged: bool) -> None:
     """StoreError naming the first damage of a shape's arrays or status codes, unless retry_damaged."""
-    from storage.store import PairReader, StoreError
+    from storage.location import StoreError
 
     if retry_damaged:
         return
-    reader = PairReader(location)
     for s in reader.shape_ids():
         for k, why in reader.table_damage(s)[:1]:
             where = f"shape {s}" if k is None else f"shape {s} case {k}"
-            raise StoreError(f"store {location}: {where} is damaged: {why}; `heartctl generate --retry-damaged` "
+            raise StoreError(f"store {location}: {where} is damaged: {why}; generating with `retry_damaged` "
                              f"{'meshes the shape again and recomputes its cases' if k is None else 'recomputes it'}")
 
 
 def _conflict(location: str, conflicts: list[str]) -> SweepConflict:
     return SweepConflict(f"store {location} was made with another setup: {'; '.join(conflicts)}; "
-                         f"use the store's settings to resume, or a new --store")
+                         f"use the store's settings to resume, or a new `store`")
 
 
-def _check_shape_tables(location: str, case_params: np.ndarray) -> None:
+def _check_shape_tables(reader, location: str, case_params: np.ndarray) -> None:
     """SweepConflict when a shape's own parameter table (what readers label its cases with) differs
     from the store's case_params (what the driver solves): resuming would store mislabelled data."""
-    from storage.store import PairReader
-
-    reader = PairReader(location)
     for s in reader.shape_ids():
         if reader.shape_problem(s) is None and not np.array_equal(reader.case_params(s), case_params):
             raise SweepConflict(f"store {location}: shape {s}'s parameter table differs from the store's case_params "
@@ -171,11 +175,11 @@ def _check_shape_tables(location: str, case_params: np.ndarray) -> None:
 def _check_writable(location: str) -> None:
     """ValueError when a local store (or the folder it would be made in) cannot be written, found
     before Ray starts; object stores are left to their own permissions."""
-    from storage.store import _local_path, is_url
+    from storage.location import is_url, local_path
 
     if is_url(location):
         return
-    path = _local_path(location).absolute()
+    path = local_path(location).absolute()
     folder = path if path.is_dir() else path.parent
     if not os.access(folder, os.W_OK | os.X_OK):
         raise ValueError(f"store {location}: {'it' if folder == path else f'the folder {folder}'} is not writable")
@@ -191,29 +195,16 @@ def _check_writable(location: str) -> None:
             raise ValueError(f"store {location}: {p.relative_to(path)} is not writable by this user")
 
 
-def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False) -> dict:
+def remaining_cases(spec: SweepSpec, location: str, retry_failed: bool = False, reader=None) -> dict:
     """Read-only counts of a store for this spec: done, failed, and to_run (cases a run would submit,
-    counting every case of a shape not meshed yet or damaged, and every status code out of range)."""
-    from storage.store import PairReader
+    counting every case of a shape not meshed yet or damaged, and every status code out of range).
+    `reader`: the store opened already (a PairReader)."""
+    from storage.reader import PairReader
 
-    counts = {"done": 0, "failed": 0, "to_run": spec.n_cases}
-    if inspect_store(location) is None:
-        return counts
-    reader = PairReader(location)
-    ready = set(reader.shape_ids())
-    to_run = 0
-    for s in range(spec.shapes):
-        damage = reader.table_damage(s) if s in ready else [(None, "not meshed")]
-        if damage and damage[0][0] is None:
-            to_run += spec.cases_per_shape
-            continue
-        st = reader.status_codes(s)
-        to_run += len(damage)
-        counts["done"] += int((st == DONE).sum())
-        counts["failed"] += int((st == FAILED).sum())
-        to_run += int((st == PENDING).sum()) + (int((st == FAILED).sum()) if retry_failed else 0)
-    counts["to_run"] = to_run
-    return counts
+    if reader is None and inspect_store(location) is None:
+        return {"done": 0, "failed": 0, "to_run": spec.n_cases}
+    counts = (reader or PairReader(location)).counts(spec.shapes)
+    return {"done": counts.done, "failed": counts.failed, "to_run": counts.to_run(retry_failed)}
 
 
 # --------------------------------------------------------------------------- Ray tasks
@@ -247,10 +238,10 @@ def solver_version() -> str:
 def open_or_create(spec: SweepSpec, location: str, retry_damaged: bool = False) -> tuple[PairStore, WriterLock]:
     """The store to write (created when new) and its writer lock, taken before the store is opened
     (opening clears a killed writer's temporary files, which must not be another live driver's)."""
-    from storage.store import _local_path, is_url
+    from storage.location import is_url, local_path
 
     attrs = check_request(spec, location, retry_damaged=retry_damaged)
-    folder = None if is_url(location) else _local_path(location)
+    folder = None if is_url(location) else local_path(location)
     made = attrs is None and folder is not None and not folder.exists()
     if made:  # the lock lives in the store's folder: two drivers starting a new store meet there
         folder.mkdir(exist_ok=True)
@@ -327,158 +318,168 @@ def run_sweep(spec: SweepSpec, location: str, *, max_in_flight: int | None = Non
 
 def _run(spec: SweepSpec, store: PairStore, max_in_flight, retry_failed, progress, on_event, console, warm_start,
          chain_length, t_start) -> SweepReport:
-    """run_sweep's body, with the store open and its writer lock held."""
+    """run_sweep's body, with the store open and its writer lock held: phase 1 meshes the shapes not
+    meshed yet, phase 2 solves the pending cases' pressure chains."""
     import ray
 
     cpus = float(ray.cluster_resources().get("CPU", 1.0))
     limit = InFlightLimit(max_in_flight, lambda: float(ray.cluster_resources().get("CPU", 0.0)))
-    K = store.n_cases
-    counts_before = _count(store, spec.shapes)
-    report = SweepReport(total=spec.n_cases, done_before=counts_before[DONE], failed_before=counts_before[FAILED],
-                         cpus=cpus)
-    grows_from = spec.grows(store.attrs)
-    run = store.begin_run({"host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus,
-                           "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": limit.value,
-                           "done_before": report.done_before, "failed_before": report.failed_before,
-                           "warm_start": warm_start, "shapes": spec.shapes,
-                           **({"shapes_before": grows_from} if grows_from is not None else {})})
-    if grows_from is not None:  # the added shapes are pending: phase 1 meshes them, phase 2 solves them
-        store.grow_shapes(spec.shapes)
-    report.run = run
+    report = _begin_run(spec, store, cpus, limit, warm_start)
     mesh_remote, chain_remote = _remotes()
     kept_failed = 0 if retry_failed else report.failed_before
     report.retried_failed = report.failed_before - kept_failed
-    bar = _Progress(progress, spec.n_cases, report.done_before + kept_failed, kept_failed, console)
+    bar = SweepProgress(progress, spec.n_cases, report.done_before + kept_failed, kept_failed, console)
     try:
         with bar:
-            # ---- phase 1: meshes
-            t1 = time.perf_counter()
-            missing = [s for s in range(spec.shapes) if not store.shape_ready(s)]
-            bar.phase(f"meshing {len(missing)} shapes" if missing else "meshes ready")
-            refs = {mesh_remote.remote(s, spec.seed, spec.nodes, *spec.mesh_source(s),
-                                       shape_model_version=spec.shape_model_version): s for s in missing}
-            while refs:
-                ready, _ = ray.wait(list(refs), num_returns=1)
-                s = refs.pop(ready[0])
-                try:
-                    out = ray.get(ready[0])
-                except Exception as exc:  # a shape that will not mesh: its cases stay pending, noted
-                    store.record_mesh_failure(s, _error_line(exc))
-                    report.mesh_failures += 1
-                    continue
-                m = out["mesh"]
-                store.write_shape(s, m.nodes, m.tets, m.endo, m.epi, m.base, out["coefficients"], out["info"])
-                report.meshed_shapes += 1
-            report.phase1_s = time.perf_counter() - t1
-
-            # ---- phase 2: pairs
-            t2 = time.perf_counter()
-            todo = deque()
-            mesh_refs = {}
-            for s in range(spec.shapes):
-                if not store.shape_ready(s):
-                    continue
-                status = store.status(s)
-                wanted = (status == PENDING) | ((status == FAILED) if retry_failed else False)
-                ks = np.flatnonzero(wanted)
-                todo.extend((s, chain) for chain in pressure_chains(store.params, ks, chain_length))
-            n_pairs = sum(len(chain) for _, chain in todo)
-            held = HeldResults(store.sharded, lambda s: int((store.table(s).status == DONE).sum()))
-            for s, _ in todo:
-                held.expect(s)
-            bar.phase(f"solving {n_pairs} pairs ({len(todo)} pressure chains) on {cpus:g} CPUs")
-            inflight: dict = {}
-            while todo or inflight:
-                while todo and len(inflight) < limit.current():
-                    s, chain = todo.popleft()
-                    if s not in mesh_refs:
-                        mesh_refs[s] = ray.put(_tet_mesh(store, s))
-                    ref = chain_remote.remote(mesh_refs[s], [tuple(store.params[k]) for k in chain], spec.fidelity,
-                                              spec.base, fibres=spec.fibres, warm_start=warm_start)
-                    inflight[ref] = (s, chain, time.time())
-                    report.submitted += len(chain)
-                ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
-                for ref in ready:
-                    s, chain, submitted_at = inflight.pop(ref)
-                    try:
-                        results = ray.get(ref)
-                    except Exception as exc:
-                        results = _failed_task_results(store, s, chain, exc)
-                        report.lost += sum(r is None for r in results)
-                    for result in results:
-                        if result is not None and result.get("pid") is not None:
-                            report.workers.add((result.get("node") or result.get("host"), result["pid"]))
-                    # a case lost with its worker (None) stays pending for the next run
-                    held.add(s, [(k, r, submitted_at) for k, r in zip(chain, results) if r is not None])
-                for s in held.due():
-                    t_w = time.perf_counter()
-                    recorded = _record(store, s, held.take(s), run)
-                    report.driver_store_s += time.perf_counter() - t_w
-                    for k, status in recorded:
-                        if status == DONE:
-                            report.done += 1
-                        else:
-                            report.failed += 1
-                        report.records.append((s, k, status))
-                        bar.advance(status == FAILED)
-                        if on_event is not None:
-                            on_event({"shape": s, "case": k, "status": status, "report": report})
-                store.flush(FLUSH_INTERVAL_S)
-            report.phase2_s = time.perf_counter() - t2
+            _mesh_phase(spec, store, mesh_remote, report, bar)
+            chains = _pending_chains(spec, store, retry_failed, chain_length)
+            _pair_phase(spec, store, chains, _ChainTask(chain_remote, spec, warm_start), limit, report, bar, on_event)
             report.cluster_cpus = max(report.cpus, limit.cpus_seen)
-            report.cpus, report.nodes = cpus_used(report.workers, _node_cpus()) if report.workers else (report.cluster_cpus, 0)
+            report.cpus, report.nodes = cpus_used(report.workers, node_cpus()) if report.workers else (report.cluster_cpus, 0)
     finally:
         store.flush()
         report.wall_s = time.perf_counter() - t_start
         try:
-            store.end_run(run, {"done": report.done, "failed": report.failed, "submitted": report.submitted,
-                                "lost": report.lost, "cpus_used": report.cpus, "nodes": report.nodes,
-                                "wall_s": report.wall_s, "phase1_s": report.phase1_s, "phase2_s": report.phase2_s})
+            store.end_run(report.run, {"done": report.done, "failed": report.failed, "submitted": report.submitted,
+                                       "lost": report.lost, "cpus_used": report.cpus, "nodes": report.nodes,
+                                       "wall_s": report.wall_s, "phase1_s": report.phase1_s,
+                                       "phase2_s": report.phase2_s})
         except Exception:
             pass
     return report
 
 
-def cpus_used(workers, node_cpus: dict) -> tuple[float, int]:
-    """(CPUs, nodes) that solved cases: each worker process runs one task (one CPU) at a time, so a
-    node used as many CPUs as it had distinct workers, at most its CPU count (Ray may replace a
-    worker). workers: {(node id or host, pid)}; node_cpus: {node id: CPUs} (ray.nodes())."""
-    from collections import Counter
+def _begin_run(spec: SweepSpec, store: PairStore, cpus: float, limit: InFlightLimit, warm_start: bool) -> SweepReport:
+    """The run's report with the store's counts before it, and the run recorded in the store's audit
+    trail (growing the store first when the spec has more shapes)."""
+    counts_before = store.counts(spec.shapes)
+    report = SweepReport(total=spec.n_cases, done_before=counts_before.done, failed_before=counts_before.failed,
+                         cpus=cpus)
+    grows_from = spec.grows(store.attrs)
+    report.run = store.begin_run({"host": socket.gethostname(), "pid": os.getpid(), "cpus": cpus,
+                                  "solver_version": solver_version(), "argv": sys.argv[:], "max_in_flight": limit.value,
+                                  "done_before": report.done_before, "failed_before": report.failed_before,
+                                  "warm_start": warm_start, "shapes": spec.shapes,
+                                  **({"shapes_before": grows_from} if grows_from is not None else {})})
+    if grows_from is not None:  # the added shapes are pending: phase 1 meshes them, phase 2 solves them
+        store.grow_shapes(spec.shapes)
+    return report
 
-    per_node = Counter(node for node, _ in workers)
-    return float(sum(min(n, node_cpus.get(node, n)) for node, n in per_node.items())), len(per_node)
+
+def _mesh_phase(spec: SweepSpec, store: PairStore, mesh_remote, report: SweepReport, bar: SweepProgress) -> None:
+    """Phase 1: every shape not meshed yet meshed by a task and written with its case arrays; a shape
+    that will not mesh is noted in the store, its cases left pending."""
+    import ray
+
+    t1 = time.perf_counter()
+    missing = [s for s in range(spec.shapes) if not store.shape_ready(s)]
+    bar.phase(f"meshing {len(missing)} shapes" if missing else "meshes ready")
+    refs = {mesh_remote.remote(s, spec.seed, spec.nodes, *spec.mesh_source(s),
+                               shape_model_version=spec.shape_model_version): s for s in missing}
+    while refs:
+        ready, _ = ray.wait(list(refs), num_returns=1)
+        s = refs.pop(ready[0])
+        try:
+            out = ray.get(ready[0])
+        except Exception as exc:
+            store.record_mesh_failure(s, _error_line(exc))
+            report.mesh_failures += 1
+            continue
+        m = out["mesh"]
+        store.write_shape(s, m.nodes, m.tets, m.endo, m.epi, m.base, out["coefficients"], out["info"])
+        report.meshed_shapes += 1
+    report.phase1_s = time.perf_counter() - t1
 
 
-def _node_cpus() -> dict:
-    """{node id: CPUs} of every node Ray knows, alive or gone."""
+def _pending_chains(spec: SweepSpec, store: PairStore, retry_failed: bool, chain_length: int) -> deque:
+    """(shape, pressure chain of case indices) of every case to solve: pending ones, and failed ones
+    when they are retried."""
+    todo = deque()
+    for s in range(spec.shapes):
+        if not store.shape_ready(s):
+            continue
+        status = store.status(s)
+        wanted = (status == PENDING) | ((status == FAILED) if retry_failed else False)
+        todo.extend((s, chain) for chain in pressure_chains(store.params, np.flatnonzero(wanted), chain_length))
+    return todo
+
+
+@dataclass
+class _ChainTask:
+    """Submits one pressure chain of a shape as a task, the shape's mesh put in Ray's object store once."""
+
+    remote: object
+    spec: SweepSpec
+    warm_start: bool
+    meshes: dict = field(default_factory=dict)
+
+    def submit(self, store: PairStore, s: int, chain: list):
+        import ray
+
+        if s not in self.meshes:
+            self.meshes[s] = ray.put(_tet_mesh(store, s))
+        return self.remote.remote(self.meshes[s], [tuple(store.params[k]) for k in chain], self.spec.fidelity,
+                                  self.spec.base, fibres=self.spec.fibres, warm_start=self.warm_start)
+
+
+def _pair_phase(spec: SweepSpec, store: PairStore, todo: deque, task: _ChainTask, limit: InFlightLimit,
+                report: SweepReport, bar: SweepProgress, on_event) -> None:
+    """Phase 2: the chains run as tasks, at most limit.current() in flight; returned cases are held
+    (HeldResults) and recorded shape by shape; a task lost with its worker leaves its cases pending."""
+    import ray
+
+    t2 = time.perf_counter()
+    held = HeldResults(store.sharded, lambda s: int((store.table(s).status == DONE).sum()))
+    for s, _ in todo:
+        held.expect(s)
+    bar.phase(f"solving {sum(len(chain) for _, chain in todo)} pairs ({len(todo)} pressure chains) on "
+              f"{report.cpus:g} CPUs")
+    inflight: dict = {}
+    while todo or inflight:
+        while todo and len(inflight) < limit.current():
+            s, chain = todo.popleft()
+            inflight[task.submit(store, s, chain)] = (s, chain, time.time())
+            report.submitted += len(chain)
+        ready, _ = ray.wait(list(inflight), num_returns=1, timeout=0.5)
+        for ref in ready:
+            s, chain, submitted_at = inflight.pop(ref)
+            held.add(s, _returned(store, s, chain, ref, submitted_at, report))
+        for s in held.due():
+            _store_shape(store, s, held.take(s), report, bar, on_event)
+        store.flush(FLUSH_INTERVAL_S)
+    report.phase2_s = time.perf_counter() - t2
+
+
+def _returned(store: PairStore, s: int, chain: list, ref, submitted_at: float, report: SweepReport) -> list:
+    """A returned task's (k, result, submitted_at) per case to record; a case lost with its worker
+    (None) is left out and stays pending for the next run."""
     import ray
 
     try:
-        return {n["NodeID"]: float(n.get("Resources", {}).get("CPU", 0.0)) for n in ray.nodes()}
-    except Exception:
-        return {}
+        results = ray.get(ref)
+    except Exception as exc:
+        results = _failed_task_results(store, s, chain, exc)
+        report.lost += sum(r is None for r in results)
+    for result in results:
+        if result is not None and result.get("pid") is not None:
+            report.workers.add((result.get("node") or result.get("host"), result["pid"]))
+    return [(k, r, submitted_at) for k, r in zip(chain, results) if r is not None]
 
 
-class InFlightLimit:
-    """How many tasks the driver keeps submitted: `fixed` when given, else twice the cluster's CPUs,
-    read again every `every_s` seconds. On an autoscaling cluster (a head with no CPUs, workers
-    added on demand) the waiting tasks are the demand the autoscaler sees, so the limit must grow
-    with the nodes that join: 2 × CPUs keeps one CPU's worth of tasks queued per CPU running."""
-
-    def __init__(self, fixed: int | None, cluster_cpus, every_s: float = 5.0, clock=time.monotonic):
-        self.fixed, self._cpus, self.every_s, self._clock = fixed, cluster_cpus, every_s, clock
-        self.cpus_seen = 0.0
-        self._next = -float("inf")
-        self.value = fixed if fixed is not None else 2
-        self.current()
-
-    def current(self) -> int:
-        if self.fixed is None and self._clock() >= self._next:
-            cpus = self._cpus()
-            self.cpus_seen = max(self.cpus_seen, cpus)
-            self.value = max(2, int(2 * cpus))
-            self._next = self._clock() + self.every_s
-        return self.value
+def _store_shape(store: PairStore, s: int, items: list, report: SweepReport, bar: SweepProgress, on_event) -> None:
+    """Record a shape's held cases (_record) and count each in the report and the progress bar."""
+    t_w = time.perf_counter()
+    recorded = _record(store, s, items, report.run)
+    report.driver_store_s += time.perf_counter() - t_w
+    for k, status in recorded:
+        if status == DONE:
+            report.done += 1
+        else:
+            report.failed += 1
+        report.records.append((s, k, status))
+        bar.advance(status == FAILED)
+        if on_event is not None:
+            on_event({"shape": s, "case": k, "status": status, "report": report})
 
 
 def _tet_mesh(store: PairStore, s: int):
@@ -487,45 +488,6 @@ def _tet_mesh(store: PairStore, s: int):
     a = store.mesh_arrays(s)
     return TetMesh(a["ed_reference"].astype(float), a["tets"].astype(np.int64), a["endo"].astype(np.int64),
                    a["epi"].astype(np.int64), a["base"].astype(np.int64), {"shape_id": s})
-
-
-class HeldResults:
-    """The returned cases the driver has not written yet, per shape. Each object of a sharded store
-    is a whole shape's shard, rewritten whole by every write into it, so a shape's cases are written
-    together: when none of its chains is waiting or in flight any more, when they are at least as
-    many as the cases its shard already holds (each write doubles the shard: about log2(chains) + 1
-    writes while the chains return close together), or when the oldest has waited WRITE_HOLD_S. A version 1
-    store (an object per case) writes each task's cases at once. Held cases are pending: a driver
-    killed while it holds them leaves them to the next run.
-
-    stored(shape): how many cases the shape's shard holds (its done cases)."""
-
-    def __init__(self, hold: bool, stored, clock=time.monotonic):
-        from collections import Counter
-
-        self.hold, self._stored, self._clock = hold, stored, clock
-        self._outstanding = Counter()  # shape → its chains waiting or in flight
-        self._held: dict[int, tuple[float, list]] = {}  # shape → (since, [(k, result, submitted_at)])
-
-    def expect(self, shape: int) -> None:
-        """A chain of the shape is to be submitted."""
-        self._outstanding[shape] += 1
-
-    def add(self, shape: int, items: list) -> None:
-        """A chain of the shape returned: its (k, result, submitted_at) of the cases to record."""
-        self._outstanding[shape] -= 1
-        if items:
-            self._held.setdefault(shape, (self._clock(), []))[1].extend(items)
-
-    def due(self) -> list[int]:
-        """The shapes whose held cases are to be written now."""
-        now = self._clock()
-        return [s for s, (since, items) in list(self._held.items())
-                if not self.hold or self._outstanding[s] <= 0 or len(items) >= self._stored(s)
-                or now - since >= WRITE_HOLD_S]
-
-    def take(self, shape: int) -> list:
-        return self._held.pop(shape)[1]
 
 
 def _record(store: PairStore, s: int, items: list, run: int) -> list[tuple[int, int]]:
@@ -589,61 +551,3 @@ def _error_line(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text[0] if text else ''}".strip()
 
 
-def _count(store: PairStore, shapes: int) -> dict:
-    counts = {PENDING: 0, DONE: 0, FAILED: 0}
-    for s in range(shapes):
-        if store.shape_ready(s):
-            st = store.status(s)
-            for code in counts:
-                counts[code] += int((st == code).sum())
-        else:
-            counts[PENDING] += store.n_cases
-    return counts
-
-
-class _Progress:
-    """A rich progress bar: done / failed / rate / ETA (silent when disabled)."""
-
-    def __init__(self, enabled: bool, total: int, completed: int, failed: int, console=None):
-        self.enabled = enabled
-        self.failed = failed
-        self.total, self.completed = total, completed
-        self._progress = None
-        if enabled:
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-                TimeRemainingColumn
-
-            self._progress = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                                      TextColumn("done {task.fields[done]} · failed {task.fields[failed]}"),
-                                      TextColumn("{task.fields[rate]}"), TimeElapsedColumn(), TextColumn("ETA"),
-                                      TimeRemainingColumn(), console=console or Console(stderr=True),
-                                      transient=False)
-            self._task = self._progress.add_task("starting", total=total, completed=completed, failed=failed,
-                                                 done=completed - failed, rate="")
-        self._t0 = time.perf_counter()
-        self._n = 0
-
-    def __enter__(self):
-        if self._progress:
-            self._progress.__enter__()
-        return self
-
-    def __exit__(self, *exc):
-        if self._progress:
-            self._progress.__exit__(*exc)
-
-    def phase(self, text: str) -> None:
-        if self._progress:
-            self._progress.update(self._task, description=text)
-            if text.startswith("solving"):
-                self._t0 = time.perf_counter()
-
-    def advance(self, failed: bool) -> None:
-        self._n += 1
-        self.completed += 1
-        self.failed += int(failed)
-        if self._progress:
-            rate = self._n / max(time.perf_counter() - self._t0, 1e-9)
-            self._progress.update(self._task, advance=1, failed=self.failed, done=self.completed - self.failed,
-                                  rate=f"{rate * 3600:.0f}/h" if rate < 1 else f"{rate:.2f}/s")

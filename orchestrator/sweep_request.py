@@ -44,13 +44,13 @@ class SweepRequest:
 
     def __post_init__(self):
         if self.num_cpus is not None and self.num_cpus < 1:
-            raise ValueError(f"--num-cpus must be ≥ 1, got {self.num_cpus}")
+            raise ValueError(f"`num_cpus` must be ≥ 1, got {self.num_cpus}")
         if self.max_in_flight is not None and self.max_in_flight < 1:
-            raise ValueError(f"--max-in-flight must be ≥ 1, got {self.max_in_flight}")
+            raise ValueError(f"`max_in_flight` must be ≥ 1, got {self.max_in_flight}")
         if self.address is not None and self.local:
-            raise ValueError("--local starts its own two-core Ray; it does not take --address")
+            raise ValueError("`local` starts its own two-core Ray; it does not take `address`")
         if self.address is not None and self.num_cpus is not None:
-            raise ValueError("--num-cpus sizes a local Ray; a cluster joined with --address has its own CPUs")
+            raise ValueError("`num_cpus` sizes a local Ray; a cluster joined with `address` has its own CPUs")
 
     @property
     def local_cpus(self) -> int | None:
@@ -92,9 +92,11 @@ def resolve_sweep(request: SweepRequest) -> ResolvedSweep:
     usable ED mesh, the grid must parse, and the store must accept the spec (sweep.check_request)."""
     from solver.mesh import MeshError
     from storage.meshfiles import read_mesh
-    from storage.store import inspect_store, reading_store
+    from storage.location import reading_store
+    from storage.reader import PairReader
+    from storage.schema import inspect_store
 
-    from .grid import AXIS_FLAGS, find_meshes, parse_axis, resolve_spec
+    from .grid import AXIS_OPTIONS, find_meshes, parse_axis, resolve_spec
     from .sweep import check_request, remaining_cases
 
     r = request
@@ -105,13 +107,14 @@ def resolve_sweep(request: SweepRequest) -> ResolvedSweep:
         explicit["shapes"] = explicit["shapes"] or len(explicit["meshes"])
         for path in explicit["meshes"]:  # every file must be a usable ED mesh before anything runs
             read_mesh(path, r.mesh_units or "mm")
-    for axis, text in zip(AXIS_FLAGS, (r.pressures, r.stiffness, r.endo, r.epi)):
-        explicit[axis] = parse_axis(AXIS_FLAGS[axis], text)
+    for axis, text in zip(AXIS_OPTIONS, (r.pressures, r.stiffness, r.endo, r.epi)):
+        explicit[axis] = parse_axis(AXIS_OPTIONS[axis], text)
     with reading_store(r.store, keep=(MeshError, ValueError, OSError)):  # argument and file errors keep their words
         stored = inspect_store(r.store)
         spec = resolve_spec(explicit, local=r.local, stored_attrs=stored)
         if r.mesh_units is not None and not spec.meshes:
-            raise ValueError("--units gives the length unit of --meshes files; this sweep meshes the shape model")
-        stored = check_request(spec, r.store, for_writing=not r.dry_run, retry_damaged=r.retry_damaged)
-        left = remaining_cases(spec, r.store, r.retry_failed) if stored is not None and not r.dry_run else None
+            raise ValueError("`units` gives the length unit of `meshes` files; this sweep meshes the shape model")
+        reader = PairReader(r.store) if stored is not None else None  # the store, opened once for every check
+        stored = check_request(spec, r.store, for_writing=not r.dry_run, retry_damaged=r.retry_damaged, reader=reader)
+        left = remaining_cases(spec, r.store, r.retry_failed, reader) if stored is not None and not r.dry_run else None
     return ResolvedSweep(r, spec, stored, left)

@@ -1,6 +1,6 @@
 """Cost of the CRC-32C checksum on every stored chunk: the store's own write path (write_pair: two
 chunks written and read back, set_case, flush) in seconds per case, and the training loader's read
-path (trainer.data.read_store: every done case into memory) in cases per second, with the store's codecs (Blosc zstd + CRC-32C) and
+path (trainer.data.store_cases.read_store: every done case into memory) in cases per second, with the store's codecs (Blosc zstd + CRC-32C) and
 with Blosc alone. The two variants alternate, repeat after repeat, on a fresh store each time; the
 medians are printed (a shared machine's noise hits both alike).
 
@@ -21,11 +21,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import storage.store as store_module  # noqa: E402
-from storage.store import DONE, PairStore, stats_row  # noqa: E402
-from trainer.data import read_store  # noqa: E402
+import storage.writer as store_module  # noqa: E402  (the writer compresses with its chunk_codecs)
+from storage.schema import DONE  # noqa: E402
+from storage.writer import PairStore, stats_row  # noqa: E402
+from trainer.data.store_cases import read_store  # noqa: E402
 
-WITH_CRC = store_module._codecs
+WITH_CRC = store_module.chunk_codecs
 
 
 def without_crc() -> tuple:
@@ -47,7 +48,7 @@ def one_store(folder: Path, meshes: list, cases: int, checksum: bool) -> tuple[f
     by other processes on the machine than wall time."""
     from orchestrator.grid import SweepSpec
 
-    store_module._codecs = WITH_CRC if checksum else without_crc
+    store_module.chunk_codecs = WITH_CRC if checksum else without_crc
     try:
         spec = SweepSpec(shapes=len(meshes), pressure_mmhg=tuple(float(p) for p in range(1, cases + 1)),
                          stiffness_pa=(150.0,), helix_endo_deg=(60.0,), helix_epi_deg=(-60.0,), fidelity="fast",
@@ -74,7 +75,7 @@ def one_store(folder: Path, meshes: list, cases: int, checksum: bool) -> tuple[f
         shutil.rmtree(location)
         return write_s, read_rate, write_cpu, read_cpu
     finally:
-        store_module._codecs = WITH_CRC
+        store_module.chunk_codecs = WITH_CRC
 
 
 def codec_alone(n_nodes: int, repeats: int, chunks: int = 200) -> dict:
@@ -158,7 +159,7 @@ def main(argv=None) -> dict:
         print(f"write (write_pair + read-back + case table): {w['crc32c']:.3f} ms/case with CRC-32C, "
               f"{w['plain']:.3f} without ({result['write_overhead_pct']:+.1f} %); CPU {wc['crc32c']:.3f} vs "
               f"{wc['plain']:.3f} ms ({result['write_cpu_overhead_pct']:+.1f} %)")
-        print(f"read (trainer.data.read_store, the training loader): {r['crc32c']:.0f} cases/s with CRC-32C, "
+        print(f"read (trainer.data.store_cases.read_store, the training loader): {r['crc32c']:.0f} cases/s with CRC-32C, "
               f"{r['plain']:.0f} without ({result['read_overhead_pct']:+.1f} % time); CPU {rc['crc32c']:.3f} vs "
               f"{rc['plain']:.3f} ms/case ({result['read_cpu_overhead_pct']:+.1f} %)")
         print(f"best repeat: write {result['write_overhead_pct_best']:+.1f} %, read {result['read_overhead_pct_best']:+.1f} %")

@@ -3,7 +3,7 @@ writes) and a chunk per case (version 1), on local disk and on an S3 server on l
 server mode, in this process). For each: objects per 1,000 cases, the sweep driver's write time per
 case (its own path: HeldResults, write_pairs with read-back, the case table flushed every
 FLUSH_INTERVAL_S; results fed chain by chain as the tasks return them), the training loader's read
-(trainer.data.read_store: every done case into memory) in cases per second, and the store's size.
+(trainer.data.store_cases.read_store: every done case into memory) in cases per second, and the store's size.
 Geometries are synthetic (a case-dependent shrink of real gmsh meshes: full float32 mantissas).
 
     .venv/bin/python scripts/bench_store.py --shapes 3 --nodes 800 [--no-s3] [--repeats 3] [--json]
@@ -24,11 +24,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from orchestrator import sweep  # noqa: E402
+from orchestrator import pacing, sweep  # noqa: E402
 from orchestrator.grid import SweepSpec, pressure_chains  # noqa: E402
 from scripts.bench_checksum import unloaded_like  # noqa: E402
-from storage.store import DONE, PairStore  # noqa: E402
-from trainer.data import read_store  # noqa: E402
+from storage.schema import DONE  # noqa: E402
+from storage.writer import PairStore  # noqa: E402
+from trainer.data.store_cases import read_store  # noqa: E402
 
 LAYOUTS = {"shard per shape": {}, "chunk per case": {"schema_version": 1}}
 BUCKET = "heartctl-bench"
@@ -44,9 +45,9 @@ def bench_spec(shapes: int, nodes: int) -> SweepSpec:
 
 def write_like_the_driver(store: PairStore, meshes: list) -> float:
     """Seconds per case the driver spends storing results, every shape's chains returned in the
-    sweep's order: held and written as `_run` does (sweep.HeldResults, sweep._record), the case
+    sweep's order: held and written as the sweep does (pacing.HeldResults, sweep._record), the case
     table flushed every FLUSH_INTERVAL_S and at the end."""
-    held = sweep.HeldResults(store.sharded, lambda s: int((store.table(s).status == DONE).sum()))
+    held = pacing.HeldResults(store.sharded, lambda s: int((store.table(s).status == DONE).sum()))
     chains = [(s, c) for s in range(len(meshes)) for c in pressure_chains(store.params, range(store.n_cases))]
     for s, _ in chains:
         held.expect(s)

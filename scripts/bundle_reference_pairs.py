@@ -21,12 +21,12 @@ OUT = Path(__file__).resolve().parents[1] / "tests" / "data" / "shipped_referenc
 
 
 def main(run_dir: Path, cache_dir: Path) -> None:
-    from solver.convergence import SolveCache
+    from bench.convergence import SolveCache
     from solver.meshing import mesh_lv
     from solver.shape_model import lv_shape
-    from trainer.checkpoint import load_run
-    from trainer.data import fingerprint_value
-    from trainer.trade import TradeSpec, held_out_cases, reference_answer
+    from trainer.training.checkpoint import load_run
+    from trainer.data.store_cases import fingerprint_value
+    from bench.trade import TradeSpec, held_out_cases, reference_answer
 
     fingerprint = load_run(run_dir)["fingerprint"]
     base = fingerprint_value(fingerprint, "base") or "sliding"

@@ -61,7 +61,7 @@ def main() -> None:
         os.environ[var] = str(args.threads)
     from solver.parameters import CaseParameters
     from storage.meshfiles import read_mesh
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
     from trainer.shipped import shipped_run
 
     run = None if args.reference_only else args.run or shipped_run()

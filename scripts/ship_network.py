@@ -15,8 +15,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from solver.meshing import mesh_lv  # noqa: E402
 from solver.shape_model import lv_shape  # noqa: E402
-from trainer.checkpoint import load_run  # noqa: E402
-from trainer.data import mesh_features  # noqa: E402
+from trainer.training.checkpoint import load_run  # noqa: E402
+from trainer.data.features import mesh_features  # noqa: E402
 from trainer.shipped import NETWORK, half_precision_error_mm, package_run, record  # noqa: E402
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "shipped_reference_pairs.npz"
@@ -26,7 +26,7 @@ def bundled_pairs_mean_mm(run: Path) -> float:
     """The network's mean node error on the bundled reference pairs (scripts/bundle_reference_pairs.py)."""
     from solver.mesh import make_mesh
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     data = np.load(BUNDLED)
     errors = []

@@ -133,6 +133,19 @@ class SparsityPattern:
         return K
 
 
+@dataclass(frozen=True)
+class _QuadratureState:
+    """The kinematics and stresses of one state at the cell quadrature points [e, q, …]."""
+
+    F: np.ndarray
+    J: np.ndarray
+    cof: np.ndarray
+    law: object  # the Guccione response (material.guccione_response)
+    P: np.ndarray  # Guccione's first Piola–Kirchhoff stress
+    pq: np.ndarray | None  # the interpolated pressure (mixed form)
+    vol_coef: np.ndarray  # the volumetric stress coefficient v
+
+
 class MechanicsProblem:
     """Discrete quasi-static inflation problem on a fixed topology.
 
@@ -338,73 +351,123 @@ class MechanicsProblem:
             return self._assemble(z_full, pressure_pa, with_tangent)
 
     def _assemble(self, z_full: np.ndarray, pressure_pa: float, with_tangent: bool):
+        """R(z) = the sum of the named terms below, each with its weak form in its docstring, over the
+        full unknowns, then restricted to the free ones; K = ∂R/∂z term by term, in the sparsity
+        pattern's order (Kuu of both stress terms first, written in place)."""
         u, p = self.split(z_full)
-        cq, fid = self.cq, self.fidelity
-        F = self.deformation_gradient(u)
-        R = self.frames
-        F_loc = F @ R  # E_loc = Rᵀ E R = (F_locᵀ F_loc − I) / 2, P = F R S_loc Rᵀ
-        law = guccione_response(green_lagrange(F_loc), self.material)
-        P = F_loc @ law.stress @ self._frames_t
-        J, cof = _det_cofactor(F)
-        dV = cq.dV
-        ne, nq = dV.shape
-        if self.mixed:
-            pq = np.einsum("ec,cq->eq", p[self.tets], cq.lam)
-            vol_coef = pq + self.penalty_pa * (J - 1.0)
-        else:
-            vol_coef = self.bulk_modulus_pa * (J - 1.0)
-        P_total = P + vol_coef[..., None, None] * cof
-        Ru = (self._grads_dv @ np.ascontiguousarray(np.swapaxes(P_total, -1, -2))).sum(axis=1).reshape(ne, -1)
+        state = self._kinematics(u, p)
         full = np.zeros(self.n_full)
-        np.add.at(full, self.cell_udofs.ravel(), Ru.ravel())
+        self._add_stress_residual(full, state)
         if self.mixed:
-            inv_k = 0.0 if np.isinf(self.bulk_modulus_pa) else 1.0 / self.bulk_modulus_pa
-            Rp = ((J - 1.0 - inv_k * pq) * dV) @ cq.lam.T
-            if self._stab is not None:
-                Rp -= np.einsum("ecd,ed->ec", self._stab, p[self.tets])
-            np.add.at(full, self.n_u + self.tets.ravel(), Rp.ravel())
-        # follower pressure on the loaded surface: + ∫ P n da · δu (n outward from the wall)
-        a1, a2, Rf = self._follower_load(u)
-        np.add.at(full, self.facet_udofs.ravel(), pressure_pa * Rf.ravel())
-        fq = self.fq
-        if self._spring is not None:
-            us = z_full[: self.n_u][self._spring_udofs]
-            np.add.at(full, self._spring_udofs.ravel(), np.einsum("fab,fb->fa", self._spring, us).ravel())
-        if self.n_gauge:
-            lam_g = z_full[self.n_u + self.n_p :]
-            uflat = z_full[: self.n_u]
-            g_off = self.n_u + self.n_p
-            np.add.at(full, g_off + self._gauge_r, self._gauge_values * uflat[self._gauge_cols])
-            np.add.at(full, self._gauge_cols, self._gauge_values * lam_g[self._gauge_r])
+            self._add_incompressibility_residual(full, state, p)
+        a1, a2 = self._add_follower_pressure_residual(full, u, pressure_pa)
+        self._add_base_spring_residual(full, z_full)
+        self._add_gauge_residual(full, z_full)
         residual = full[self.free]
-        min_J = float(J.min())
+        min_J = float(state.J.min())
         if not with_tangent:
             return residual, None, min_J
         penalty = self.penalty_pa if self.mixed else self.bulk_modulus_pa
         entries = np.empty(self.pattern.position.size)  # in pattern order: Kuu first, written in place
         n_uu = self.cell_udofs.size * self.cell_udofs.shape[1]
-        S = R @ law.stress @ self._frames_t
-        H = self._displacement_tangent(F, law, S, P, cof, vol_coef / J, penalty, out=entries[:n_uu])
-        # pressure-load tangent: d n / d x_c = −ξ1_c [a2]x + ξ2_c [a1]x, as [f, b, c, i, j]
-        sk1, sk2 = _skew(a1), _skew(a2)
-        d1, d2 = (fq.dxi[:, k].T[None, :, :, None, None] for k in (0, 1))  # [1, q, c, 1, 1]
-        dn = d2 * sk1[:, :, None] - d1 * sk2[:, :, None]
-        Kf = (pressure_pa * fq.values * fq.weights) @ dn.reshape(*dn.shape[:2], 9 * dn.shape[2])
-        values = [Kf.ravel()]
+        S = self.frames @ state.law.stress @ self._frames_t
+        H = self._displacement_tangent(state.F, state.law, S, state.P, state.cof, state.vol_coef / state.J, penalty,
+                                       out=entries[:n_uu])
+        values = [self._follower_pressure_tangent(a1, a2, pressure_pa).ravel()]
         if self._spring is not None:
             values.append(self._spring.ravel())
         if self.mixed:
-            Kup = np.swapaxes(H * dV[..., None], 1, 2) @ cq.lam.T  # ∫ (cof F ∇φ_a)_i ψ_c dV: [e, (a i), c]
-            Kpp = -inv_k * np.einsum("cq,dq,eq->ecd", cq.lam, cq.lam, dV)
-            if self._stab is not None:
-                Kpp = Kpp - self._stab
-            Kup_flat = Kup.reshape(ne, -1, 4)
-            values += [Kup_flat.ravel(), Kup_flat.ravel(), Kpp.ravel()]
+            values += self._incompressibility_tangent(H)
         if self.n_gauge:
             values += [self._gauge_values, self._gauge_values]
         np.concatenate(values, out=entries[n_uu:])
-        K = self.pattern.matrix(entries)
-        return residual, K, min_J
+        return residual, self.pattern.matrix(entries), min_J
+
+    def _kinematics(self, u: np.ndarray, p: np.ndarray) -> "_QuadratureState":
+        """F = I + ∇u, J = det F and cof F at the cell quadrature points; the Guccione law's response to
+        the fibre-frame Green–Lagrange strain E_loc = Rᵀ E R and its first Piola–Kirchhoff stress
+        P = F R S_loc Rᵀ; and the volumetric stress coefficient: p + κ_pen (J − 1) with the
+        interpolated pressure p (mixed), or κ (J − 1) (penalty form)."""
+        F = self.deformation_gradient(u)
+        F_loc = F @ self.frames
+        law = guccione_response(green_lagrange(F_loc), self.material)
+        P = F_loc @ law.stress @ self._frames_t
+        J, cof = _det_cofactor(F)
+        pq = None
+        if self.mixed:
+            pq = np.einsum("ec,cq->eq", p[self.tets], self.cq.lam)
+            vol_coef = pq + self.penalty_pa * (J - 1.0)
+        else:
+            vol_coef = self.bulk_modulus_pa * (J - 1.0)
+        return _QuadratureState(F, J, cof, law, P, pq, vol_coef)
+
+    def _add_stress_residual(self, full: np.ndarray, s: "_QuadratureState") -> None:
+        """Guccione and incompressibility, tested with δu:
+        ∫_Ω₀ (P(F) + v(J, p) cof F) : ∇₀δu dV, with W = C/2 (e^Q − 1) the Guccione law (P = ∂W/∂F) and
+        v the volumetric coefficient of _kinematics (cof F = J F⁻ᵀ = ∂J/∂F)."""
+        ne = s.F.shape[0]
+        P_total = s.P + s.vol_coef[..., None, None] * s.cof
+        Ru = (self._grads_dv @ np.ascontiguousarray(np.swapaxes(P_total, -1, -2))).sum(axis=1).reshape(ne, -1)
+        np.add.at(full, self.cell_udofs.ravel(), Ru.ravel())
+
+    def _add_incompressibility_residual(self, full: np.ndarray, s: "_QuadratureState", p: np.ndarray) -> None:
+        """The mixed form's constraint, tested with the P1 pressure δp:
+        ∫_Ω₀ (J − 1 − p/κ) δp dV − Σ_e δpᵀ S_e p_e, κ the bulk modulus (∞: exact incompressibility) and
+        S_e the element's pressure stabilisation (none when the pair is inf-sup stable)."""
+        cq = self.cq
+        inv_k = 0.0 if np.isinf(self.bulk_modulus_pa) else 1.0 / self.bulk_modulus_pa
+        Rp = ((s.J - 1.0 - inv_k * s.pq) * cq.dV) @ cq.lam.T
+        if self._stab is not None:
+            Rp -= np.einsum("ecd,ed->ec", self._stab, p[self.tets])
+        np.add.at(full, self.n_u + self.tets.ravel(), Rp.ravel())
+
+    def _incompressibility_tangent(self, H: np.ndarray) -> list:
+        """K_up = ∫ (cof F ∇₀φ_a)_i ψ_c dV (and its transpose K_pu), K_pp = −(1/κ) ∫ ψ_c ψ_d dV − S_e,
+        as the pattern lists them."""
+        cq = self.cq
+        ne = H.shape[0]
+        inv_k = 0.0 if np.isinf(self.bulk_modulus_pa) else 1.0 / self.bulk_modulus_pa
+        Kup = np.swapaxes(H * cq.dV[..., None], 1, 2) @ cq.lam.T  # [e, (a i), c]
+        Kpp = -inv_k * np.einsum("cq,dq,eq->ecd", cq.lam, cq.lam, cq.dV)
+        if self._stab is not None:
+            Kpp = Kpp - self._stab
+        Kup_flat = Kup.reshape(ne, -1, 4)
+        return [Kup_flat.ravel(), Kup_flat.ravel(), Kpp.ravel()]
+
+    def _add_follower_pressure_residual(self, full: np.ndarray, u: np.ndarray, pressure_pa: float):
+        """The cavity pressure P on the deformed endocardium, following it:
+        + P ∫_Γ n da · δu, n outward from the wall (n da = a₁ × a₂ dξ on each facet). Returns the
+        deformed facets' tangents a₁, a₂ (the tangent term needs them)."""
+        a1, a2, Rf = self._follower_load(u)
+        np.add.at(full, self.facet_udofs.ravel(), pressure_pa * Rf.ravel())
+        return a1, a2
+
+    def _follower_pressure_tangent(self, a1: np.ndarray, a2: np.ndarray, pressure_pa: float) -> np.ndarray:
+        """∂/∂u of the follower load: P ∫ φ_a (∂n/∂x_c) φ_c dξ with ∂n/∂x_c = −ξ1_c [a₂]ₓ + ξ2_c [a₁]ₓ
+        ([a]ₓ the cross-product matrix), as [f, b, c, i, j]."""
+        fq = self.fq
+        sk1, sk2 = _skew(a1), _skew(a2)
+        d1, d2 = (fq.dxi[:, k].T[None, :, :, None, None] for k in (0, 1))  # [1, q, c, 1, 1]
+        dn = d2 * sk1[:, :, None] - d1 * sk2[:, :, None]
+        return (pressure_pa * fq.values * fq.weights) @ dn.reshape(*dn.shape[:2], 9 * dn.shape[2])
+
+    def _add_base_spring_residual(self, full: np.ndarray, z_full: np.ndarray) -> None:
+        """The epicardial spring of the `spring` and `heartfem` bases: ∫_Γepi k (u · n₀) (δu · n₀) dA,
+        k in Pa/mm (its matrix per facet, _spring_matrix, is also its tangent)."""
+        if self._spring is not None:
+            us = z_full[: self.n_u][self._spring_udofs]
+            np.add.at(full, self._spring_udofs.ravel(), np.einsum("fab,fb->fa", self._spring, us).ravel())
+
+    def _add_gauge_residual(self, full: np.ndarray, z_full: np.ndarray) -> None:
+        """Rigid motions the supports leave free, removed by Lagrange multipliers λ:
+        λ · G u (the constraint rows G: the base ring's or the wall's mean translation and turn, zero)
+        and its transpose δu · Gᵀ λ; the same values are the tangent's."""
+        if self.n_gauge:
+            lam_g = z_full[self.n_u + self.n_p:]
+            uflat = z_full[: self.n_u]
+            g_off = self.n_u + self.n_p
+            np.add.at(full, g_off + self._gauge_r, self._gauge_values * uflat[self._gauge_cols])
+            np.add.at(full, self._gauge_cols, self._gauge_values * lam_g[self._gauge_r])
 
     def _displacement_tangent(self, F, law, S, P, cof, vol_over_J, penalty, out):
         """Writes Kuu [e, a, i, b, j] = Σ_q dV ∇φ_a,I ∂(P + vol cof F)_iI/∂F_jJ ∇φ_b,J to `out` (flat),

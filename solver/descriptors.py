@@ -233,4 +233,4 @@ def range_warning(outside: list[dict], most: int = 3) -> str | None:
              for o in outside[:most]]
     more = f" and {len(outside) - most} more" if len(outside) > most else ""
     return (f"the mesh lies outside the network's training shapes: {'; '.join(parts)}{more}; the network "
-            f"extrapolates: check its answer with --check, or use --method hybrid")
+            f"extrapolates: check its answer with `check`, or use `method` hybrid")

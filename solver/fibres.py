@@ -20,6 +20,7 @@ import scipy.sparse as sp
 from .elements import build_dofmap, cell_quadrature, facet_dofs, simplex_shape, tet_geometry
 from .linear import SparseSolver
 from .mesh import TetMesh
+from .parameters import FIBRE_RULES
 
 
 def transmural_coordinate(mesh: TetMesh) -> np.ndarray:
@@ -168,7 +169,6 @@ def helix_angle_at_nodes(mesh: TetMesh, helix_endo_deg: float, helix_epi_deg: fl
 # angle is linear in d. On a wall one element thick (the dataset's meshes) the squared ratio moves
 # the quadrature points' angles from ±30° to ±48° for 60/−60 — it shows in the displacements.
 
-FIBRE_RULES = ("laplace", "heartfem")
 BASE_CLIP_MM = 0.5  # heartFEM's clipheight, 0.05 cm
 NORMAL_BLEND_FRACTION = 0.005  # soft-min width δ of the closest-point normal, × the surface's mean edge length
 NORMAL_BLEND_CUTOFF = 20.0  # the blend's weights are zero beyond this many δ
@@ -178,7 +178,7 @@ FULL_WEIGHT_AREA = 1e-3  # a clipped piece counts fully in the blend from this f
 def check_fibre_rule(rule: str) -> None:
     """ValueError (one line, naming --fibres) unless `rule` is one of FIBRE_RULES."""
     if rule not in FIBRE_RULES:
-        raise ValueError(f"--fibres must be {' or '.join(FIBRE_RULES)}, got {rule!r}")
+        raise ValueError(f"`fibres` must be {' or '.join(FIBRE_RULES)}, got {rule!r}")
 
 
 

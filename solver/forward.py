@@ -64,92 +64,140 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
     Converged when |R|∞ ≤ rtol·force_scale·looseness, or when a full-Newton update is below
     increment_tol_mm·looseness (the residual is then checked once more). Returns (z, ok, reason)."""
     fid = problem.fidelity
-    free = problem.free
-    n_u_free = np.count_nonzero(free < problem.n_u)
-    r_tol = fid.residual_rtol * force_scale * looseness
-    du_tol = fid.increment_tol_mm * looseness
-    r0 = None
-    r_prev = None
-    rnorm = float("nan")
-    fresh = False  # does the factorisation belong to the current state's tangent?
-    # a held factorisation serves only a tangent of this problem's size (a workspace holds one solver
-    # for problems of several supports)
-    need_tangent = not (reuse_factor and linsolve.size == problem.free.size)
-    z_before = None  # the state the last step started from
-    known = None  # (R, min det F) already assembled at z, by the backtracking
-    budget_used = 0.0  # max_newton counts full steps; a modified step counts MODIFIED_STEP_WEIGHT
+    run = _NewtonRun(problem, pressure_pa, linsolve, stats, force_scale, reuse_factor, z,
+                     r_tol=fid.residual_rtol * force_scale * looseness, du_tol=fid.increment_tol_mm * looseness,
+                     # a held factorisation serves only a tangent of this problem's size (a workspace
+                     # holds one solver for problems of several supports)
+                     need_tangent=not (reuse_factor and linsolve.size == problem.free.size))
     # a pass that only refreshes a tangent or steps back solves nothing: at most two passes per solve
     for _ in range(2 * int(np.ceil(fid.max_newton / MODIFIED_STEP_WEIGHT)) + 2):
-        if known is not None and not need_tangent:
-            (R, min_J), K = known, None
+        R, K, min_J = run.residual()
+        verdict = run.verdict(R, min_J)
+        if verdict == _AGAIN:
+            continue
+        if verdict == _OUT_OF_BUDGET:
+            break
+        if verdict is not None:
+            return (run.z, *verdict)
+        outcome = run.step(R, K)
+        if outcome is not None:
+            return (run.z, *outcome)
+    linsolve.forget()
+    return run.z, False, f"no convergence in {fid.max_newton} Newton iterations (|R|∞ {run.rnorm:.3g})"
+
+
+_AGAIN, _OUT_OF_BUDGET = "again", "out of budget"  # _NewtonRun.verdict's answers that are not an outcome
+
+
+@dataclass
+class _NewtonRun:
+    """The state of one _newton call between its iterations: the current state z, the state the last
+    step started from, whether the held factorisation is the current tangent's (`fresh`) and whether
+    the next assembly needs one, the first and last residuals, and the iteration budget used (a
+    full step counts 1, a modified one MODIFIED_STEP_WEIGHT)."""
+
+    problem: MechanicsProblem
+    pressure_pa: float
+    linsolve: SparseSolver
+    stats: SolveStats
+    force_scale: float
+    reuse_factor: bool
+    z: np.ndarray
+    r_tol: float
+    du_tol: float
+    need_tangent: bool
+    fresh: bool = False
+    z_before: np.ndarray | None = None
+    known: tuple | None = None  # (R, min det F) already assembled at z, by the backtracking
+    r0: float | None = None
+    r_prev: float | None = None
+    rnorm: float = float("nan")
+    budget_used: float = 0.0
+
+    def residual(self):
+        """(R, K or None, min det F) at z: the backtracking's when it assembled them and no tangent is
+        needed, else assembled (with the tangent when one is needed)."""
+        if self.known is not None and not self.need_tangent:
+            (R, min_J), K = self.known, None
         else:
             t0 = time.perf_counter()
-            R, K, min_J = problem.assemble(z, pressure_pa, with_tangent=need_tangent)
-            stats.assembly_s += time.perf_counter() - t0
-        known = None
-        rnorm = float(np.abs(R).max())
-        stats.residual_history.append(rnorm)
-        if z_before is not None and not fresh and not (np.isfinite(rnorm) and min_J > 0 and rnorm <= r_prev):
+            R, K, min_J = self.problem.assemble(self.z, self.pressure_pa, with_tangent=self.need_tangent)
+            self.stats.assembly_s += time.perf_counter() - t0
+        self.known = None
+        self.rnorm = float(np.abs(R).max())
+        self.stats.residual_history.append(self.rnorm)
+        return R, K, min_J
+
+    def verdict(self, R: np.ndarray, min_J: float):
+        """What the residual at z says: (ok, reason) when the solve ends here, _AGAIN to assemble again
+        (a step stepped back, or a stale tangent to refresh), _OUT_OF_BUDGET, or None to take a step."""
+        rnorm, stats = self.rnorm, self.stats
+        if self.z_before is not None and not self.fresh and not (np.isfinite(rnorm) and min_J > 0
+                                                                 and rnorm <= self.r_prev):
             # a step with an old tangent made things worse (an inverse update's first step uses the
             # previous reference's tangent): go back to where it started and refactorise there
-            z, z_before, need_tangent = z_before, None, True
-            continue
+            self.z, self.z_before, self.need_tangent = self.z_before, None, True
+            return _AGAIN
         if not np.isfinite(rnorm):
-            linsolve.forget()
-            return z, False, "non-finite residual"
+            self.linsolve.forget()
+            return False, "non-finite residual"
         if min_J <= 0:
-            linsolve.forget()
-            return z, False, f"det F ≤ 0 (min {min_J:.3g})"
+            self.linsolve.forget()
+            return False, f"det F ≤ 0 (min {min_J:.3g})"
         stats.final_residual, stats.min_jacobian = rnorm, min_J
-        if rnorm <= r_tol:
-            return z, True, ""
-        r0 = rnorm if r0 is None else r0
-        if rnorm > 1e4 * max(r0, force_scale):
-            linsolve.forget()
-            return z, False, f"diverging residual {rnorm:.3g}"
-        if not need_tangent and r_prev is not None and rnorm > STALE_TANGENT_RATE * r_prev:
+        if rnorm <= self.r_tol:
+            return True, ""
+        self.r0 = rnorm if self.r0 is None else self.r0
+        if rnorm > 1e4 * max(self.r0, self.force_scale):
+            self.linsolve.forget()
+            return False, f"diverging residual {rnorm:.3g}"
+        if not self.need_tangent and self.r_prev is not None and rnorm > STALE_TANGENT_RATE * self.r_prev:
             # the old tangent contracts too slowly here (but it did contract): refactorise at this state
-            need_tangent = True
-            continue
-        if budget_used >= fid.max_newton:
-            break
+            self.need_tangent = True
+            return _AGAIN
+        if self.budget_used >= self.problem.fidelity.max_newton:
+            return _OUT_OF_BUDGET
+        return None
+
+    def step(self, R: np.ndarray, K):
+        """One Newton step from z (on a fresh factorisation of K, or the held one): (ok, reason) when
+        the solve ends with it (a singular tangent, or a full step below du_tol at a small residual),
+        else None."""
+        stats, problem = self.stats, self.problem
         t0 = time.perf_counter()
-        if need_tangent:
+        if self.need_tangent:
             try:
-                linsolve.factorize(K)
+                self.linsolve.factorize(K)
             except SingularMatrix:
-                return z, False, "singular tangent"
-            fresh = True
-        else:
-            fresh = False
+                return False, "singular tangent"
+        self.fresh = self.need_tangent
         try:
-            dz = linsolve.solve_factored(-R)  # SingularMatrix: the symmetric part's LU fallback failed
+            dz = self.linsolve.solve_factored(-R)  # SingularMatrix: the symmetric part's LU fallback failed
         except SingularMatrix:
-            return z, False, "singular tangent"
+            return False, "singular tangent"
         stats.linear_s += time.perf_counter() - t0
         stats.newton_iterations += 1
         stats.newton_iterations_here += 1
-        budget_used += 1.0 if fresh else MODIFIED_STEP_WEIGHT
-        need_tangent = not reuse_factor
-        r_prev = rnorm
+        self.budget_used += 1.0 if self.fresh else MODIFIED_STEP_WEIGHT
+        self.need_tangent = not self.reuse_factor
+        self.r_prev = self.rnorm
         if not np.all(np.isfinite(dz)):
-            linsolve.forget()
-            return z, False, "singular tangent"
-        z_before = z
-        full_step_mm = float(np.abs(dz[:n_u_free]).max())
-        if fresh:
-            z, _, R, min_J = _backtrack(problem, z, dz, pressure_pa, rnorm, stats)
-            known = (R, min_J)
-        else:
-            z = z.copy()
-            z[free] += dz
-        if fresh and full_step_mm <= du_tol:
-            rnorm = float(np.abs(R).max())
+            self.linsolve.forget()
+            return False, "singular tangent"
+        self.z_before = self.z
+        full_step_mm = float(np.abs(dz[:np.count_nonzero(problem.free < problem.n_u)]).max())
+        if not self.fresh:
+            self.z = self.z.copy()
+            self.z[problem.free] += dz
+            return None
+        self.z, _, R, min_J = _backtrack(problem, self.z, dz, self.pressure_pa, self.rnorm, stats)
+        self.known = (R, min_J)
+        if full_step_mm <= self.du_tol:
+            self.rnorm = rnorm = float(np.abs(R).max())
             stats.final_residual, stats.min_jacobian = rnorm, min_J
-            if min_J > 0 and rnorm <= max(r_tol, 1e-3 * force_scale):
-                return z, True, ""
-    linsolve.forget()
-    return z, False, f"no convergence in {fid.max_newton} Newton iterations (|R|∞ {rnorm:.3g})"
+            if min_J > 0 and rnorm <= max(self.r_tol, 1e-3 * self.force_scale):
+                return True, ""
+        return None
 
 
 def _backtrack(problem: MechanicsProblem, z: np.ndarray, dz: np.ndarray, pressure_pa: float, rnorm: float,
@@ -158,10 +206,8 @@ def _backtrack(problem: MechanicsProblem, z: np.ndarray, dz: np.ndarray, pressur
     exceed the current one (and det F > 0 everywhere), or else the α with the smallest residual.
     Returns the new state, the step taken, and the residual and min det F there (reused by Newton).
     One residual assembly (no tangent) per trial, ~¼ of a tangent assembly's cost. From zero strain
-    the Fung law's linearised step overshoots far into the stiff range. On shape 0 (921 nodes, `fast`),
-    a forward solve at the soft corner (14 mmHg, 50 Pa) took 20 Newton iterations instead of 27 and
-    its pair 2.2 s instead of 3.1 s (best of three); over 33 forward solves (the corners of two extreme
-    shapes and of shape 0, plus three mid cases; 800 nodes), 478 factorisations instead of 579."""
+    the Fung law's linearised step overshoots far into the stiff range; the line search saves Newton
+    iterations and factorisations at the soft corners of the box."""
     best = None
     for alpha in BACKTRACK_STEPS:
         trial = z.copy()

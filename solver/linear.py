@@ -100,7 +100,7 @@ class SparseSolver:
     open endocardium (about 4e-4 of the largest entry on an `accurate` LV tangent), and the LDLᵀ
     costs half the LU (13,287 unknowns, P2/P1, one thread: 64 ms against 124 ms). `solve_factored`
     then returns S⁻¹b, an inexact Newton step whose relative residual ‖A x − b‖/‖b‖, measured on the
-    first solve after each factorisation (`skew_residual`), was 1e-3 there. Above SKEW_LIMIT, or for
+    first solve after each factorisation (`skew_residual`), is about 1e-3 there. Above SKEW_LIMIT, or for
     a pattern that is not symmetric, the solver factorises A itself from then on. `solve` refines
     S⁻¹b against A to a direct solver's accuracy."""
 

@@ -9,20 +9,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .anderson import Anderson
 from .assembly import MechanicsProblem, Supports
 from .elements import quadrature_barycentric
-from .fibres import FIBRE_RULES, rule_frames, transmural_coordinate
+from .fibres import rule_frames
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
 from .inverse_newton import newton_krylov_step
 from .linear import SingularMatrix, SparseSolver
 from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
-from .parameters import CaseParameters
+from .parameters import BASE_CONDITIONS, FIBRE_RULES, CaseParameters
 from .progress import report
 from .refine import prolongate, refine_uniform
 
-BASE_CONDITIONS = ("sliding", "clamped", "spring", "heartfem")
 EPI_SPRING_PA_PER_MM = 9.0  # the original pipeline's 90 Pa per unit length, with lengths in cm
 
 
@@ -68,10 +68,9 @@ def lv_problem(mesh: TetMesh, params: CaseParameters, fidelity: Fidelity | str, 
 class PairWorkspace:
     """What consecutive pairs on one ED mesh share: the FE problem of each (preset, base, fibre rule,
     stiffness), so its sparsity pattern and P2 dof map are built once, and the sparse solver, so
-    PARDISO's analysis is done once. `orchestrator.tasks.run_chain` keeps one per pressure chain:
-    on 800-node meshes (a prototype of this) a chain's `fast` pairs took 0.31 s instead of 0.39 s
-    each, with the same unloaded geometry to 3e-14 mm. A problem it hands out is re-pointed (`set_reference`) by the next
-    pair. Use it as a context manager: leaving frees the solver's memory."""
+    PARDISO's analysis is done once. `orchestrator.tasks.run_chain` keeps one per pressure chain; the
+    pairs it solves equal those solved alone to round-off. A problem it hands out is re-pointed
+    (`set_reference`) by the next pair. Use it as a context manager: leaving frees the solver's memory."""
 
     def __init__(self, ed_mesh: TetMesh):
         self.tets = ed_mesh.tets
@@ -138,8 +137,8 @@ class PairWorkspace:
         (`unloaded_guess`'s rule), as a displacement from X, with the vertices exactly on `x_ed`.
         None before a pair of this problem is remembered. Where the vertex-only start
         (`_state_from_vertices`: straight edges, zero pressure field) is far from equilibrium, this
-        one starts with the curved edges and the pressure field of the neighbouring pairs: on an
-        800-node `accurate` chain, its first residual was 1e2–1e3× smaller."""
+        one starts with the curved edges and the pressure field of the neighbouring pairs, whose
+        first residual is 1e2–1e3× smaller on an `accurate` chain."""
         solved = [(p, loaded) for p, _, loaded in self._solved.get(self._key_of(problem), [])]
         extrapolated = _extrapolate_in_pressure(solved, pressure_mmhg)
         if extrapolated is None:
@@ -234,21 +233,17 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
 
     Fibres are recomputed on each trial reference (they are defined on the stress-free state),
     so forward_solve(unloaded) reproduces x_ED. `initial_unloaded` (from the network, or from a
-    cheaper preset) replaces X0 = x_ED; the first solve then starts from u0 = x_ED − X0 at full load
-    (load stepping only if that fails), or, with a `workspace` that has solved pairs of this problem,
-    from their loaded states extrapolated to this pressure (`PairWorkspace.loaded_guess`), by modified
-    Newton on the factorisation the workspace holds. Stops when the max nodal mismatch ≤ tol_mm.
+    cheaper preset) replaces X0 = x_ED (`_first_state`). Stops when the max nodal mismatch ≤ tol_mm.
 
     `max_updates` k: stop after at most k fixed-point updates and return that reference with its
     mismatch, met tolerance or not (a fixed budget asked for by the caller: `bench trade`'s
     "network guess + k updates"); without it, not reaching tol_mm in the preset's updates raises.
 
     `reuse_factor`: each re-solve is modified Newton, keeping a factorised tangent while it still
-    cuts the residual 4× per back-substitution (a re-solve starts close to its answer). For the
-    `fast` preset on an 800-node mesh this halved the factorisations of a chain of four warm-started
-    pairs (194 → 95) and cut its time by a third; load stepping from zero keeps full Newton, where
-    reuse cost more than it saved. A step with the previous reference's tangent that makes things
-    worse steps back and refactorises (`forward._newton`)."""
+    cuts the residual 4× per back-substitution: a re-solve starts close to its answer, so most need no
+    new factorisation. Load stepping from zero keeps full Newton, where reuse costs more than it
+    saves. A step with the previous reference's tangent that makes things worse steps back and
+    refactorises (`forward._newton`)."""
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
     if fid.refinement_levels:
         return _refined_inverse(ed_mesh, params, fid, base, initial_unloaded, tol_mm, fibres)
@@ -262,30 +257,14 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
     if X.shape != x_ed.shape or not np.all(np.isfinite(X)):
         raise ValueError("initial unloaded guess must be finite and have one point per ED node")
     check_geometry(X, ed_mesh.tets)
-    if workspace is not None:
-        linsolve = linsolve or workspace.linsolve
-        problem = workspace.problem(ed_mesh.with_nodes(X), params, fid, base, fibres)
-    else:
-        linsolve = linsolve or SparseSolver()
-        problem = lv_problem(ed_mesh.with_nodes(X), params, fid, base, fibres=fibres)
-    stats = SolveStats()
-    history: list[float] = []
-    accel = _Anderson(memory=5)
-    n = ed_mesh.n_nodes
-    z = None
-    if initial_unloaded is not None:
-        z0 = workspace.loaded_guess(problem, params.pressure_mmhg, x_ed) if workspace is not None else None
-        try:
-            z, st = inflate(problem, params.pressure_pa, z0=_state_from_vertices(problem, x_ed - X) if z0 is None
-                            else z0, start_load=1.0, linsolve=linsolve, looseness=1e3,
-                            reuse_factor=reuse_factor and z0 is not None)
-        except SolveError:
-            z = None
-    if z is None:
-        z, st = inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=1e3)
+    linsolve = linsolve or (workspace.linsolve if workspace is not None else SparseSolver())
+    problem = (workspace.problem(ed_mesh.with_nodes(X), params, fid, base, fibres) if workspace is not None
+               else lv_problem(ed_mesh.with_nodes(X), params, fid, base, fibres=fibres))
+    stats, history, accel = SolveStats(), [], Anderson(memory=5)
+    z, st = _first_state(problem, params, x_ed, X, initial_unloaded is not None, workspace, linsolve, reuse_factor)
     stats.add(st)
     for update in range(budget + 1):
-        mismatch = X + problem.split(z)[0][:n] - x_ed
+        mismatch = X + problem.split(z)[0][:ed_mesh.n_nodes] - x_ed
         err = float(np.linalg.norm(mismatch, axis=1).max())
         history.append(err)
         report(f"inverse update {update}: mismatch {err:.2e} mm (stops at {tol:g} mm)")
@@ -295,42 +274,84 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
             return InverseResult(X, err, update, stats, history, z, problem)
         if update == budget:
             break
-        # inexact inner solves: stop each re-solve when its residual, turned into a displacement
-        # error (|R| · mean|u| / (P · area)), is ~1000× below the current mismatch
-        u_mean = float(np.linalg.norm(problem.split(z)[0][:n], axis=1).mean()) + 1e-3
-        looseness = float(np.clip(1e-3 * err / (u_mean * fid.residual_rtol), 1.0, 1e6))
-        z_prev, X_prev = z, X
-        for accelerated in (True, False):
-            predicted = frames = None
-            if not accelerated:
-                X = X_prev - mismatch
-            elif fid.inverse_step == "newton" and len(history) >= 2 and history[-1] > NEWTON_WHEN_SLOWER * history[-2]:
-                X, predicted, frames, products = _newton_update(problem, z_prev, params, mismatch, linsolve, ed_mesh,
-                                                                fid, fibres)
-                stats.jacobian_products += products
-            else:
-                X = accel.step(X_prev, mismatch)
-            try:
-                check_geometry(X, ed_mesh.tets)  # a folded trial reference is a failure, not data
-                if frames is None:  # (a Newton trial's frames were made when it was checked)
-                    frames = _frames(ed_mesh.with_nodes(X), params, fid, fibres)
-                problem.set_reference(X, frames)
-                # starts: Newton's predicted state, then where the trial reference maps exactly onto x_ED
-                # (the previous field, moved by how far the accelerated step lands from the plain one)
-                starts = [predicted] if predicted is not None else []
-                starts.append(z_prev + _state_from_vertices(problem, X_prev - mismatch - X))
-                z, st = _resolve(problem, params.pressure_pa, starts, linsolve, looseness, reuse_factor)
-                stats.add(st)
-                break
-            except (SolveError, MeshError) as exc:
-                accel.reset()
-                if not accelerated:
-                    if isinstance(exc, MeshError):
-                        raise SolveError(f"inverse update {update + 1} produced an invalid reference ({exc})") from None
-                    raise
+        X, z = _update_reference(problem, z, X, mismatch, history, accel, stats,
+                                 _UpdateContext(ed_mesh, params, fid, fibres, linsolve, reuse_factor, update))
     stats.wall_s = time.perf_counter() - t_start
     raise SolveError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
                      f"(mismatch {history[-1]:.3g} mm)")
+
+
+def _first_state(problem: MechanicsProblem, params: CaseParameters, x_ed: np.ndarray, X: np.ndarray, guessed: bool,
+                 workspace: PairWorkspace | None, linsolve: SparseSolver, reuse_factor: bool):
+    """(state, stats) of the first forward solve on the reference X. From a `guessed` reference it
+    starts from u0 = x_ED − X at full load, or, with a `workspace` that has solved pairs of this
+    problem, from their loaded states extrapolated to this pressure (`PairWorkspace.loaded_guess`), by
+    modified Newton on the factorisation the workspace holds; load stepping from zero when that fails,
+    and always from x_ED itself."""
+    if guessed:
+        z0 = workspace.loaded_guess(problem, params.pressure_mmhg, x_ed) if workspace is not None else None
+        try:
+            return inflate(problem, params.pressure_pa, z0=_state_from_vertices(problem, x_ed - X) if z0 is None
+                           else z0, start_load=1.0, linsolve=linsolve, looseness=1e3,
+                           reuse_factor=reuse_factor and z0 is not None)
+        except SolveError:
+            pass
+    return inflate(problem, params.pressure_pa, linsolve=linsolve, looseness=1e3)
+
+
+@dataclass(frozen=True)
+class _UpdateContext:
+    """What every update of one inverse solve shares: the ED mesh, the case, the preset, the fibre rule,
+    the linear solver, whether re-solves keep a factorisation, and the update's number."""
+
+    ed_mesh: TetMesh
+    params: CaseParameters
+    fid: Fidelity
+    fibres: str
+    linsolve: SparseSolver
+    reuse_factor: bool
+    update: int
+
+
+def _update_reference(problem: MechanicsProblem, z_prev: np.ndarray, X_prev: np.ndarray, mismatch: np.ndarray,
+                      history: list, accel, stats: SolveStats, ctx: _UpdateContext) -> tuple[np.ndarray, np.ndarray]:
+    """(X, z): the next trial reference and its re-solved state. The accelerated (or Newton) step is
+    tried first; a trial that folds an element or whose re-solve fails falls back to the plain update
+    X_prev − mismatch, whose failure raises SolveError."""
+    # inexact inner solves: stop each re-solve when its residual, turned into a displacement
+    # error (|R| · mean|u| / (P · area)), is ~1000× below the current mismatch
+    n = ctx.ed_mesh.n_nodes
+    u_mean = float(np.linalg.norm(problem.split(z_prev)[0][:n], axis=1).mean()) + 1e-3
+    looseness = float(np.clip(1e-3 * history[-1] / (u_mean * ctx.fid.residual_rtol), 1.0, 1e6))
+    for accelerated in (True, False):
+        predicted = frames = None
+        if not accelerated:
+            X = X_prev - mismatch
+        elif (ctx.fid.inverse_step == "newton" and len(history) >= 2
+              and history[-1] > NEWTON_WHEN_SLOWER * history[-2]):
+            X, predicted, frames, products = _newton_update(problem, z_prev, ctx.params, mismatch, ctx.linsolve,
+                                                            ctx.ed_mesh, ctx.fid, ctx.fibres)
+            stats.jacobian_products += products
+        else:
+            X = accel.step(X_prev, mismatch)
+        try:
+            check_geometry(X, ctx.ed_mesh.tets)  # a folded trial reference is a failure, not data
+            if frames is None:  # (a Newton trial's frames were made when it was checked)
+                frames = _frames(ctx.ed_mesh.with_nodes(X), ctx.params, ctx.fid, ctx.fibres)
+            problem.set_reference(X, frames)
+            # starts: Newton's predicted state, then where the trial reference maps exactly onto x_ED
+            # (the previous field, moved by how far the accelerated step lands from the plain one)
+            starts = [predicted] if predicted is not None else []
+            starts.append(z_prev + _state_from_vertices(problem, X_prev - mismatch - X))
+            z, st = _resolve(problem, ctx.params.pressure_pa, starts, ctx.linsolve, looseness, ctx.reuse_factor)
+            stats.add(st)
+            return X, z
+        except (SolveError, MeshError) as exc:
+            accel.reset()
+            if not accelerated:
+                if isinstance(exc, MeshError):
+                    raise SolveError(f"inverse update {ctx.update + 1} produced an invalid reference ({exc})") from None
+                raise
 
 
 def _newton_update(problem: MechanicsProblem, z: np.ndarray, params: CaseParameters, mismatch: np.ndarray,
@@ -381,9 +402,8 @@ def refined_unloaded(ed_mesh: TetMesh, unloaded: np.ndarray, displacement: np.nd
     """An unloaded geometry on refine_uniform(ed_mesh, levels) from one on `ed_mesh`. With the P2
     displacement of its solve (`displacement_at_dofs`), each new midpoint takes X = x_ED − u there:
     one fixed-point step from where the P2 solution puts it, where interpolating X ignores the
-    solution's curvature along the edge (an `accurate` inverse on a 4,393-node mesh, started from the
-    657-node answer so, began 0.46 mm off (max nodal) instead of 0.79 mm and took 140 s instead of
-    213 s). Otherwise, and for further levels, X is interpolated linearly."""
+    solution's curvature along the edge (an inverse on the refined mesh starts closer to its answer,
+    docs/solver.md). Otherwise, and for further levels, X is interpolated linearly."""
     unloaded = np.asarray(unloaded, dtype=float)
     if unloaded.shape != ed_mesh.nodes.shape or not np.all(np.isfinite(unloaded)):
         raise ValueError("initial unloaded guess must be finite and have one point per ED node")
@@ -478,32 +498,6 @@ def _state_from_vertices(problem: MechanicsProblem, u_vertices: np.ndarray) -> n
     fixed = np.setdiff1d(np.arange(problem.n_u), problem.free[problem.free < problem.n_u])
     z[fixed] = 0.0
     return z
-
-
-class _Anderson:
-    """Anderson acceleration (type II) of the fixed point X ← X − G(X), G = x(X) − x_ED."""
-
-    def __init__(self, memory: int = 5):
-        self.memory = memory
-        self.reset()
-
-    def reset(self) -> None:
-        self._g, self._f = [], []
-
-    def step(self, X: np.ndarray, G: np.ndarray) -> np.ndarray:
-        g = (X - G).ravel()
-        f = -G.ravel()
-        self._g.append(g)
-        self._f.append(f)
-        if len(self._f) > self.memory + 1:
-            self._g.pop(0)
-            self._f.pop(0)
-        if len(self._f) < 2:
-            return g.reshape(X.shape)
-        dF = np.stack([b - a for a, b in zip(self._f[:-1], self._f[1:])], axis=1)
-        dG = np.stack([b - a for a, b in zip(self._g[:-1], self._g[1:])], axis=1)
-        gamma, *_ = np.linalg.lstsq(dF, f, rcond=1e-10)
-        return (g - dG @ gamma).reshape(X.shape)
 
 
 @dataclass

@@ -51,9 +51,8 @@ class TetMesh:
 def _unique_faces(faces: np.ndarray, **kwargs):
     """np.unique over triangles as node sets (any order), returning only the `return_*` arrays.
 
-    Each triangle becomes one int64 (its sorted node numbers in base n), which sorts faster than
-    np.unique(axis=0) on rows (`folded_tets` on 921 nodes: 9.6 → 2.5 ms); meshes with n³ ≥ 2⁶³ fall
-    back to rows."""
+    Each triangle becomes one int64 (its sorted node numbers in base n), which sorts about 4× faster
+    than np.unique(axis=0) on rows; meshes with n³ ≥ 2⁶³ fall back to rows."""
     key = np.sort(faces, axis=1).astype(np.int64)
     n = int(key.max()) + 1 if key.size else 1
     if n < 2_000_000:  # n³ < 2⁶³
@@ -105,7 +104,7 @@ def check_coordinates(nodes: np.ndarray, scale_to_mm: float = 1.0, unit: str = "
     largest = float(np.abs(nodes).max()) if nodes.size else 0.0
     if largest > MAX_COORDINATE_MM / scale_to_mm:
         raise MeshError(f"mesh has coordinates up to {largest:.3g} {unit}, beyond ±{MAX_COORDINATE_MM:g} mm: no LV "
-                        f"is that large; check the mesh's coordinates and length unit (--units)")
+                        f"is that large; check the mesh's coordinates and length unit (`units`)")
 
 
 def check_geometry(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:

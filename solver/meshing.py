@@ -14,7 +14,7 @@ APEX_ELEMENTS_PER_MM = 2.5  # version 2: element size at a thin apex, × its thi
 MIN_NODES, MAX_NODES = 50, 200_000  # 250× the default: a mistyped count (1e8) must not mesh until killed
 
 
-def check_node_target(nodes: int, name: str = "--nodes") -> None:
+def check_node_target(nodes: int, name: str = "`nodes`") -> None:
     """ValueError unless the target node count is MIN_NODES–MAX_NODES."""
     if not MIN_NODES <= nodes <= MAX_NODES:
         raise ValueError(f"{name} must be {MIN_NODES}–{MAX_NODES:,} (a target node count), got {nodes}")

@@ -13,6 +13,10 @@ HIGHEST_ED_PRESSURE_MMHG = 40.0
 # law overflows double precision before the solver can report a failure.
 HIGHEST_STIFFNESS_PA = 1e6
 
+BASE_CONDITIONS = ("sliding", "clamped", "spring", "heartfem")  # solver.lv.base_supports
+FIBRE_RULES = ("laplace", "heartfem")  # solver.fibres.rule_frames
+SOLVE_DIRECTIONS = ("forward", "inverse")  # inflate an unloaded mesh, or unload an ED mesh
+
 PAPER_GRID = {
     "pressure_mmhg": (4.0, 6.0, 8.0, 10.0, 12.0, 14.0),
     "stiffness_pa": (50.0, 100.0, 150.0, 200.0, 250.0, 300.0),

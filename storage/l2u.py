@@ -21,7 +21,9 @@ import numpy as np
 
 from solver.parameters import CaseParameters, ParameterError
 
-from .store import DONE, FAILED, PairStore, StoreError, inspect_store, is_url, stats_row
+from .location import StoreError, is_url
+from .schema import DONE, FAILED, inspect_store
+from .writer import PairStore, stats_row
 
 NAME = re.compile(r"^(ED|unloaded)(\d+)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)_(\d+(?:\.\d+)?)\.vtu$")
 CM_TO_MM = 10.0
@@ -141,19 +143,41 @@ def import_l2u(root, location, progress=None) -> ImportReport:
     it are skipped with the reason). The store is built beside its final place and renamed into it
     at the end (local paths), so an interrupted import leaves nothing behind. Raises StoreError if
     no pair could be imported; a shape whose sizes are no human LV's in cm draws a MeshUnitsWarning."""
-    from solver.mesh import MeshUnitsWarning
-    from solver.shape_model import MODES
-
-    from .meshfiles import units_warning
-
     report = ImportReport()
     if inspect_store(location) is not None or (not is_url(location) and Path(location).exists()):
         raise StoreError(f"{location} already exists; import-l2u writes a new store")
-    pairs = find_pairs(root, report)
+    shapes = _read_shapes(find_pairs(root, report), report, progress)
+    usable = _usable_shapes(shapes, report)
+    if not usable:
+        raise StoreError(report.nothing_imported(root))
+    axes = [sorted({d[0].params[i] for _, data in shapes.values() for d in data}) for i in range(4)]
+    grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(4, -1).T
+    final = str(location)
+    staging = final if is_url(final) else str(Path(final).with_name(Path(final).name + ".importing"))
+    if not is_url(final) and Path(staging).exists():
+        shutil.rmtree(staging)
+    try:
+        store = PairStore.create(staging, _store_attrs(axes, grid, len(usable)))
+        index = {tuple(row): k for k, row in enumerate(grid.tolist())}
+        for shape_id, (shape, mesh, data) in enumerate(usable):
+            _write_shape(store, shape_id, shape, mesh, data, index, report)
+        if report.imported == 0:
+            raise StoreError(report.nothing_imported(root))
+        if staging != final:
+            os.replace(staging, final)
+    except BaseException:
+        if staging != final and Path(staging).exists():
+            shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return report
+
+
+def _read_shapes(pairs: list, report: ImportReport, progress=None) -> dict:
+    """{source shape: (tets, [(pair, ed, unloaded)])} of the pairs that read and share one topology
+    with their shape's first; the others are skipped with their reason."""
     by_shape = defaultdict(list)
     for pair in pairs:
         by_shape[pair.shape].append(pair)
-    # read everything first: a shape is usable only with a consistent topology
     shapes = {}
     for shape, group in sorted(by_shape.items()):
         ref_tets, data = None, []
@@ -181,7 +205,17 @@ def import_l2u(root, location, progress=None) -> ImportReport:
             shapes[shape] = (ref_tets, data)
         if progress:
             progress(shape)
-    usable = []  # (source shape, mesh, pairs): a shape none of whose ED meshes is usable gets no id
+    return shapes
+
+
+def _usable_shapes(shapes: dict, report: ImportReport) -> list:
+    """[(source shape, mesh, pairs)] of the shapes with a usable ED mesh (a shape none of whose ED
+    meshes is usable gets no id); a shape whose sizes are no human LV's in cm draws a warning."""
+    from solver.mesh import MeshUnitsWarning
+
+    from .meshfiles import units_warning
+
+    usable = []
     for shape, (tets, data) in sorted(shapes.items()):
         mesh, tried = _shape_mesh(data, tets)
         for pair, reason in tried:  # pairs whose own ED mesh is unusable (a NaN, a folded tet …)
@@ -191,19 +225,15 @@ def import_l2u(root, location, progress=None) -> ImportReport:
             continue
         warning = units_warning(mesh, "cm", f"source shape {shape} ({data[0][0].ed_path.name})", hint=False)
         if warning is not None:
-            warnings.warn(warning, MeshUnitsWarning, stacklevel=2)
+            warnings.warn(warning, MeshUnitsWarning, stacklevel=3)
         usable.append((shape, mesh, data))
-    if not usable:
-        raise StoreError(report.nothing_imported(root))
-    axes = [sorted({d[0].params[i] for _, data in shapes.values() for d in data}) for i in range(4)]
-    grid = np.array(np.meshgrid(*axes, indexing="ij")).reshape(4, -1).T
-    index = {tuple(row): k for k, row in enumerate(grid.tolist())}
-    final = str(location)
-    staging = final if is_url(final) else str(Path(final).with_name(Path(final).name + ".importing"))
-    if not is_url(final) and Path(staging).exists():
-        shutil.rmtree(staging)
-    attrs = {
-        "grid": {"shapes": len(usable), "pressure_mmhg": axes[0], "stiffness_pa": axes[1],
+    return usable
+
+
+def _store_attrs(axes: list, grid: np.ndarray, n_shapes: int) -> dict:
+    """The new store's root attributes: the grid of every parameter value found, and the source."""
+    return {
+        "grid": {"shapes": n_shapes, "pressure_mmhg": axes[0], "stiffness_pa": axes[1],
                  "helix_endo_deg": axes[2], "helix_epi_deg": axes[3]},
         "fidelity": "imported", "seed": None, "mesh_nodes": None, "base": "source pipeline",
         "n_cases_per_shape": int(len(grid)), "case_params": grid.tolist(),
@@ -211,43 +241,36 @@ def import_l2u(root, location, progress=None) -> ImportReport:
         "source": SOURCE, "source_units": "cm (converted to mm)", "shape_source": "imported",
         "epi_sign": "restored: file names give |θepi|, θepi = −value",
     }
-    try:
-        store = PairStore.create(staging, attrs)
-        for shape_id, (shape, mesh, data) in enumerate(usable):
-            store.write_shape(shape_id, mesh.nodes, mesh.tets, mesh.endo, mesh.epi, mesh.base,
-                              np.full(len(MODES), np.nan),
-                              {"source_shape": shape, "source_split": data[0][0].split, "n_source_pairs": len(data)})
-            present = set()
-            files = {}
-            # the acceptance checks (finite, no inverted tet, min det F > 0) apply; no solve ran here,
-            # so the solver's round trip and residual pass trivially and are stored as NaN
-            cases = {index[tuple(pair.params)]: (pair, ed, un, _min_jacobian(un, ed, mesh.tets)) for pair, ed, un in data}
-            reasons = store.write_pairs(shape_id, {k: (un, ed, {"roundtrip_error_mm": 0.0, "min_jacobian": min_j,
-                                                                "final_residual": 0.0})
-                                                   for k, (_, ed, un, min_j) in cases.items()})  # one shard write
-            for k, (pair, _, _, min_j) in cases.items():
-                if reasons[k] is not None:
-                    report.skip(reasons[k], pair.ed_path.name)
-                    continue
-                store.set_case(shape_id, k, DONE, stats_row({"min_jacobian": min_j}))
-                present.add(k)
-                files[str(k)] = [pair.ed_path.name, pair.unloaded_path.name]
-                report.imported += 1
-            for k in range(len(grid)):
-                if k not in present:
-                    store.set_case(shape_id, k, FAILED, stats_row({}), reason=ABSENT)
-            store.update_shape_attrs(shape_id, source_shape=shape, source_split=data[0][0].split, source_files=files)
-            store.flush()
-            report.shapes += 1
-        if report.imported == 0:
-            raise StoreError(report.nothing_imported(root))
-        if staging != final:
-            os.replace(staging, final)
-    except BaseException:
-        if staging != final and Path(staging).exists():
-            shutil.rmtree(staging, ignore_errors=True)
-        raise
-    return report
+
+
+def _write_shape(store: PairStore, shape_id: int, shape, mesh, data: list, index: dict, report: ImportReport) -> None:
+    """A source shape as shape `shape_id`: its mesh, its pairs as done cases (one shard write), every
+    case of the grid it has no pair for failed as ABSENT."""
+    from solver.shape_model import MODES
+
+    store.write_shape(shape_id, mesh.nodes, mesh.tets, mesh.endo, mesh.epi, mesh.base, np.full(len(MODES), np.nan),
+                      {"source_shape": shape, "source_split": data[0][0].split, "n_source_pairs": len(data)})
+    present, files = set(), {}
+    # the acceptance checks (finite, no inverted tet, min det F > 0) apply; no solve ran here,
+    # so the solver's round trip and residual pass trivially and are stored as NaN
+    cases = {index[tuple(pair.params)]: (pair, ed, un, _min_jacobian(un, ed, mesh.tets)) for pair, ed, un in data}
+    reasons = store.write_pairs(shape_id, {k: (un, ed, {"roundtrip_error_mm": 0.0, "min_jacobian": min_j,
+                                                        "final_residual": 0.0})
+                                           for k, (_, ed, un, min_j) in cases.items()})
+    for k, (pair, _, _, min_j) in cases.items():
+        if reasons[k] is not None:
+            report.skip(reasons[k], pair.ed_path.name)
+            continue
+        store.set_case(shape_id, k, DONE, stats_row({"min_jacobian": min_j}))
+        present.add(k)
+        files[str(k)] = [pair.ed_path.name, pair.unloaded_path.name]
+        report.imported += 1
+    for k in range(len(index)):
+        if k not in present:
+            store.set_case(shape_id, k, FAILED, stats_row({}), reason=ABSENT)
+    store.update_shape_attrs(shape_id, source_shape=shape, source_split=data[0][0].split, source_files=files)
+    store.flush()
+    report.shapes += 1
 
 
 def _shape_mesh(data: list, tets: np.ndarray) -> tuple:

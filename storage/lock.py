@@ -17,7 +17,10 @@ import os
 import socket
 import time
 
-from .store import LOCK_NAME, StoreError, _local_path, is_url
+from .location import StoreError, is_url, local_path
+
+LOCK_NAME = ".heartctl-writer.lock"  # the writer lock's file in a local store
+
 # holder() probes the lock by taking it for a moment; a writer that finds it busy tries again for this
 # long before it believes another writer holds it (a real writer holds it for the whole sweep).
 PROBE_WAIT_S = 1.0
@@ -28,7 +31,7 @@ def holder(location) -> dict | None:
     writing its name), or None: nobody, this process, or an object store."""
     if is_url(location):
         return None
-    path = _local_path(location) / LOCK_NAME
+    path = local_path(location) / LOCK_NAME
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
@@ -58,7 +61,7 @@ class WriterLock:
 
     def __init__(self, location):
         self.location = location
-        self.path = None if is_url(location) else _local_path(location) / LOCK_NAME
+        self.path = None if is_url(location) else local_path(location) / LOCK_NAME
         self._fd = None
 
     @property

@@ -46,7 +46,7 @@ def units_warning(mesh: TetMesh, units: str, name: str, hint: bool = True) -> st
     fits = [u for u in UNIT_TO_MM if u != units and plausible(UNIT_TO_MM[u] / scale)]
     if len(fits) == 1:
         return (f"{name}: {sizes} read in {units}: this looks like {fits[0]}"
-                + (f"; pass --units {fits[0]}" if hint else f", not {units}"))
+                + (f"; pass units={fits[0]}" if hint else f", not {units}"))
     ranges = ", ".join(f"{_SIZE_WORDS[k][0]} {lo:g}–{hi:g} {_SIZE_WORDS[k][1]}" for k, (lo, hi) in HUMAN_LV_RANGE.items())
     return f"{name}: {sizes} read in {units}: outside a human LV's sizes ({ranges}); check the mesh's length unit"
 

@@ -12,7 +12,7 @@ def refusal_rank(rank: int, world: int, rendezvous: str, out) -> None:
     import torch
     import torch.distributed as tdist
 
-    from trainer.ray_train import agreed_refusal
+    from trainer.training.ray_train import agreed_refusal
 
     tdist.init_process_group("gloo", init_method=f"file://{rendezvous}", rank=rank, world_size=world,
                              timeout=timedelta(seconds=60))
@@ -24,14 +24,14 @@ def refusal_rank(rank: int, world: int, rendezvous: str, out) -> None:
 
 
 def fit_rank(rank: int, world: int, rendezvous: str, train_config: dict, run_dir: str, out) -> None:
-    """One rank of a plain DDP run (no Ray) of trainer.loop.fit: puts (rank, its summary) on `out`."""
+    """One rank of a plain DDP run (no Ray) of trainer.training.loop.fit: puts (rank, its summary) on `out`."""
     from datetime import timedelta
 
     import torch.distributed as tdist
     from torch.nn.parallel import DistributedDataParallel
 
     from trainer.config import TrainConfig
-    from trainer.loop import Dist, fit
+    from trainer.training.loop import Dist, fit
 
     tdist.init_process_group("gloo", init_method=f"file://{rendezvous}", rank=rank, world_size=world,
                              timeout=timedelta(seconds=120))

@@ -16,7 +16,7 @@ def start_local_ray() -> str:
     import ray
 
     from orchestrator.ray_session import RayAddress, start_or_join, sweep_ray_options
-    from trainer.ray_local import local_ray_options
+    from trainer.training.ray_local import local_ray_options
 
     if not ray.is_initialized():
         sweep, train = sweep_ray_options(2, local=True), local_ray_options(2)

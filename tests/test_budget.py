@@ -6,7 +6,6 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-import cli
 from cli import app
 from solver.budget import estimate_for_nodes, estimate_solve, mesh_counts, unknowns
 from storage.meshfiles import read_mesh
@@ -56,7 +55,7 @@ def test_counts_of_a_mesh_and_its_refinement():
 
 @pytest.mark.parametrize("command", ["solve", "unload"])
 def test_a_solve_that_cannot_fit_is_refused_in_one_line(tmp_path, monkeypatch, command):
-    monkeypatch.setattr(cli, "_available_memory", lambda: 50e6)
+    monkeypatch.setattr("app.terminal.console.available_memory", lambda: 50e6)
     out = tmp_path / "out.vtu"
     r = run(command, MESH, "--pressure", 8, "--stiffness", 150, "--fidelity", "accurate", "-o", out)
     assert r.exit_code == 2, r.output
@@ -70,7 +69,7 @@ def test_a_solve_that_cannot_fit_is_refused_in_one_line(tmp_path, monkeypatch, c
 
 def test_a_network_answer_needs_no_solve_budget(tmp_path, monkeypatch):
     """unload --method gnn solves nothing: the memory check does not apply (the shipped network answers)."""
-    monkeypatch.setattr(cli, "_available_memory", lambda: 50e6)
+    monkeypatch.setattr("app.terminal.console.available_memory", lambda: 50e6)
     r = run("unload", MESH, "--pressure", 8, "--stiffness", 150, "--method", "gnn", "-o", tmp_path / "x.vtu")
     assert r.exit_code == 0 and "needs about" not in r.output, r.output
 
@@ -78,7 +77,7 @@ def test_a_network_answer_needs_no_solve_budget(tmp_path, monkeypatch):
 def test_a_sweep_whose_workers_cannot_fit_is_refused_in_one_line(tmp_path, monkeypatch):
     """generate estimates one pair's memory at its preset and --nodes, times its local workers, before Ray
     starts: too much is one line naming how many workers fit, and no store is made."""
-    monkeypatch.setattr(cli, "_available_memory", lambda: 40e9)
+    monkeypatch.setattr("app.terminal.console.available_memory", lambda: 40e9)
     store = tmp_path / "s.zarr"
     per_worker = estimate_for_nodes("reference", 5_000, inverse=True).peak_bytes
     assert 20e9 < per_worker < 40e9  # one worker fits, two do not
@@ -93,7 +92,7 @@ def test_a_long_solve_shows_its_steps_and_a_short_one_nothing(tmp_path, monkeypa
     r = run("solve", MESH, "--pressure", 8, "--stiffness", 150, "--fidelity", "fast", "-o", tmp_path / "a.vtu")
     assert r.exit_code == 0 and r.stderr == "", r.output
     quiet = r.stdout
-    monkeypatch.setattr(cli, "SLOW_SOLVE_S", 0.0)
+    monkeypatch.setattr("app.terminal.console.SLOW_SOLVE_S", 0.0)
     r = run("solve", MESH, "--pressure", 8, "--stiffness", 150, "--fidelity", "fast", "-o", tmp_path / "b.vtu")
     assert r.exit_code == 0, r.output
     lines = r.stderr.splitlines()
@@ -111,7 +110,7 @@ def test_a_large_mesh_target_says_so_before_gmsh_starts(tmp_path, monkeypatch):
     out = tmp_path / "m.vtu"
     r = run("mesh", "--shape", 1, "--nodes", 160, "-o", out)
     assert r.exit_code == 0 and r.stderr == "", r.output
-    monkeypatch.setattr(cli, "LARGE_MESH_NODES", 100)
+    monkeypatch.setattr("app.terminal.console.LARGE_MESH_NODES", 100)
     r = run("mesh", "--shape", 1, "--nodes", 160, "-o", out)
     assert r.exit_code == 0, r.output
     first = r.stderr.splitlines()[0]

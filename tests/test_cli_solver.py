@@ -442,12 +442,12 @@ def test_units_check_names_the_unit_that_fits(tmp_path, lv_file):
 
     lv = read_mesh(lv_file)
     assert units_warning(lv, "mm", "lv.vtu") is None and "units_warning" not in lv.info
-    with pytest.warns(MeshUnitsWarning, match=r"this looks like mm; pass --units mm$"):
+    with pytest.warns(MeshUnitsWarning, match=r"this looks like mm; pass units=mm$"):
         mesh = read_mesh(lv_file, "cm")  # a mm mesh read as cm: 850 mm long
     assert "looks like mm" in mesh.info["units_warning"]
     metres = tmp_path / "lv_m.vtu"
     write_mesh(metres, lv, units="m")
-    with pytest.warns(MeshUnitsWarning, match=r"this looks like m; pass --units m$"):
+    with pytest.warns(MeshUnitsWarning, match=r"this looks like m; pass units=m$"):
         read_mesh(metres)
     giant = lv.with_nodes(lv.nodes * 3.0)  # 250 mm long, 30 mm wall, ~3.5 L: no unit makes it a human LV
     assert "outside a human LV's sizes" in units_warning(giant, "mm", "giant.vtu")
@@ -493,7 +493,7 @@ def test_a_pressure_above_end_diastolic_is_warned_by_solve_and_unload(lv_file, t
         raise SolveError("not solved in this test")
 
     monkeypatch.setattr(solver.lv, "forward_solve", no_solve)
-    monkeypatch.setattr("cli._unload_mesh", lambda *a: no_solve())
+    monkeypatch.setattr("app.terminal.unloading.unload_or_fail", lambda *a: no_solve())
     r = run(command, lv_file, "--pressure", 200, "--stiffness", 150, "-o", tmp_path / "x.vtu")
     assert r.output.splitlines()[0] == ("warning: --pressure 200 mmHg: end-diastolic pressures are 0–40 mmHg; such "
                                         "cases may take long and fail"), r.output

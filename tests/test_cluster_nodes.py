@@ -22,10 +22,11 @@ from orchestrator.tasks import run_chain  # noqa: E402
 from orchestrator.ray_session import WORKER_NICENESS, init_ray  # noqa: E402
 from process_tree import processes_titled  # noqa: E402
 from orchestrator.sweep import run_sweep  # noqa: E402
-from storage.store import DONE, PairReader  # noqa: E402
-from trainer.checkpoint import load_run  # noqa: E402
+from storage.reader import PairReader  # noqa: E402
+from storage.schema import DONE  # noqa: E402
+from trainer.training.checkpoint import load_run  # noqa: E402
 from trainer.config import PAPER, TrainConfig  # noqa: E402
-from trainer.ray_local import LOCAL_RAY_TRAIN_ENV  # noqa: E402
+from trainer.training.ray_local import LOCAL_RAY_TRAIN_ENV  # noqa: E402
 from trainer_fixtures import make_tiny_store  # noqa: E402
 from gloo_ranks import fit_rank, spawn_ranks  # noqa: E402
 from local_ray import stop_local_ray  # noqa: E402
@@ -166,7 +167,7 @@ def test_a_node_lost_mid_sweep_every_case_done_once_and_intact(cluster, tmp_path
 
 
 def test_ray_train_loses_a_node_and_resumes_from_its_last_checkpoint(cluster, tmp_path):
-    from trainer.ray_train import train_with_ray
+    from trainer.training.ray_train import train_with_ray
 
     store = make_tiny_store(tmp_path / "tiny.zarr", shapes=4)
     cfg = TrainConfig(store=store, config_name="paper-small", model=replace(SMALL, dropout=0.0), epochs=5,

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from orchestrator.l2u_check import check_case
-from storage.store import PairReader
+from storage.reader import PairReader
 
 FIXTURES = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "l2u"
 if not FIXTURES.is_dir():  # CI clones the repo beside a copy of shared/
@@ -253,7 +253,8 @@ def test_train_and_evaluate_with_the_source_split(tmp_path):
 def test_imported_cases_keep_their_own_ed_geometry(store):
     """Within a shape their ED meshes differ by up to ~0.4 mm: each case's graph starts from its own
     ED (case.loaded), and its label is its own unloaded − ED, not the shape mesh's."""
-    from trainer.data import Normalisation, build_graphs, read_store
+    from trainer.data.store_cases import build_graphs, read_store
+    from trainer.data.normalisation import Normalisation
 
     reader = PairReader(str(store))
     cases = read_store(str(store))

@@ -118,7 +118,7 @@ def test_outside_range_names_the_descriptor():
     out = outside_range(thin, table)
     assert "mid_wall_thickness_mm" in [o["name"] for o in out]
     line = range_warning(out)
-    assert out[0]["label"] in line and "--check" in line and "--method hybrid" in line and "\n" not in line
+    assert out[0]["label"] in line and "`check`" in line and "`method` hybrid" in line and "\n" not in line
 
 
 def test_cli_mesh_prints_descriptors(tmp_path):

@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 import trainer.shipped as shipped
 from cli import app
 from storage.meshfiles import write_mesh
-from trainer.config import TrainerError
-from trainer.data import mesh_features
+from trainer.errors import TrainerError
+from trainer.data.features import mesh_features
 from trainer_fixtures import lv_mesh, make_tiny_store
 
 runner = CliRunner()
@@ -93,7 +93,7 @@ def test_the_shipped_network_scores_as_its_model_card_says_on_bundled_reference_
     it was packaged (to 2 µm: another machine's arithmetic), and no pair is twice as far."""
     from solver.mesh import make_mesh
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     run = shipped.shipped_run()  # the digest check
     data = np.load(BUNDLED)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from orchestrator.tasks import run_chain
-from solver.convergence import (CASES, ConvergenceSpec, Hierarchy, convergence_shape, markdown_report, nodal_error,
+from bench.convergence import (CASES, ConvergenceSpec, Hierarchy, convergence_shape, markdown_report, nodal_error,
                                 observed_order, parse_hierarchies, richardson_error, run_convergence, unload_at_level)
 from solver.elements import quadrature_barycentric
 from solver.fidelity import get_fidelity

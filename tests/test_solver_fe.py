@@ -7,7 +7,7 @@ import pytest
 from skfem import MeshTet
 
 from solver.assembly import MechanicsProblem, SparsityPattern, Supports
-from solver.benchmarks import land1, land2
+from solver.land_problems import land1, land2
 from solver.elements import cell_quadrature
 from solver.fibres import fibre_frames, uniform_frames
 from solver.fidelity import PRESETS, get_fidelity
@@ -312,7 +312,7 @@ def test_inverse_with_heartfem_fibres_and_base_converges():
 
 
 def test_unloading_is_equivariant_under_rotation_about_the_long_axis(coarse_lv):
-    """What trainer.augment relies on: turning the ED mesh about a line parallel to z turns its
+    """What trainer.data.augment relies on: turning the ED mesh about a line parallel to z turns its
     unloaded geometry the same way (sliding base, in-plane gauge, fibres from geometry and e_z)."""
     params = CaseParameters(12.0, 100.0, 60.0, -60.0)
     phi, pivot = np.radians(40.0), np.array([3.0, -2.0, 0.0])
@@ -327,7 +327,7 @@ def test_unloading_is_equivariant_under_rotation_about_the_long_axis(coarse_lv):
 
 
 def test_unloading_scales_with_the_shape_about_a_point_of_the_base_plane(coarse_lv):
-    """What trainer.augment's scaling relies on: scaling the ED mesh by s about a point of the base
+    """What trainer.data.augment's scaling relies on: scaling the ED mesh by s about a point of the base
     plane scales its unloaded geometry the same way (F, and so the stress, unchanged; internal and
     pressure work both gain s²; helix angles from relative wall depth; base plane kept)."""
     params = CaseParameters(12.0, 100.0, 60.0, -60.0)

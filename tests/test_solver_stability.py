@@ -10,7 +10,7 @@ import pytest
 from solver.meshing import mesh_lv
 from solver.parameters import CaseParameters
 from solver.shape_model import extreme_shapes
-from solver.stability import EXTENDED_BOX, PAPER_BOX, Q_OVERFLOW, region_table, stability_case
+from bench.stability import EXTENDED_BOX, PAPER_BOX, Q_OVERFLOW, region_table, stability_case
 
 
 @pytest.fixture(scope="module")

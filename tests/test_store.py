@@ -11,8 +11,12 @@ import zarr
 
 from orchestrator.grid import LOCAL_SPEC, SweepSpec, parse_axis, resolve_spec
 from orchestrator.tasks import mesh_shape, run_case
-from storage.store import (DONE, FAILED, PENDING, STAT_NAMES, PairReader, PairStore, StoreError, export_case,
-                           inspect_store, read_done_cases, stats_row, summarize)
+from storage.export import export_case
+from storage.location import StoreError
+from storage.reader import PairReader, read_done_cases
+from storage.schema import DONE, FAILED, PENDING, STAT_NAMES, inspect_store
+from storage.status import summarize
+from storage.writer import PairStore, stats_row
 
 SPEC = SweepSpec(shapes=2, pressure_mmhg=(8.0, 12.0), stiffness_pa=(100.0,), helix_endo_deg=(60.0,),
                  helix_epi_deg=(-60.0,), fidelity="fast", seed=0, nodes=200)
@@ -188,15 +192,15 @@ def test_grid_spec():
     assert p.tolist() == [[8.0, 100.0, 60.0, -60.0], [12.0, 100.0, 60.0, -60.0]]
     full = SweepSpec(shapes=1).case_params()
     assert full[1].tolist() == [4.0, 50.0, 60.0, -65.0]  # θepi varies fastest
-    for bad, match in [(dict(pressure_mmhg=()), "--pressures is empty"), (dict(fidelity="medium"), "unknown fidelity"),
-                       (dict(shapes=0), "--shapes"), (dict(stiffness_pa=(100.0, 100.0)), "repeated"),
-                       (dict(pressure_mmhg=(-1.0,)), "pressure"), (dict(nodes=10), "--nodes")]:
+    for bad, match in [(dict(pressure_mmhg=()), "`pressures` is empty"), (dict(fidelity="medium"), "unknown fidelity"),
+                       (dict(shapes=0), "`shapes`"), (dict(stiffness_pa=(100.0, 100.0)), "repeated"),
+                       (dict(pressure_mmhg=(-1.0,)), "pressure"), (dict(nodes=10), "`nodes`")]:
         with pytest.raises(ValueError, match=match):
             SweepSpec(**{**SPEC.__dict__, **bad}).validate()
     assert SPEC.conflicts(SPEC.store_attrs()) == []
     other = SweepSpec(**{**SPEC.__dict__, "pressure_mmhg": (8.0,), "fidelity": "accurate"})
     msgs = other.conflicts(SPEC.store_attrs())
-    assert any("--pressures 8" in m for m in msgs) and any("--fidelity accurate" in m for m in msgs)
+    assert any("pressures=8" in m for m in msgs) and any("fidelity=accurate" in m for m in msgs)
     edited = SPEC.store_attrs()  # the same preset name, its tolerance edited since the store was made
     edited["fidelity_settings"] = {**edited["fidelity_settings"], "inverse_tol_mm": 1.0}
     msgs = SPEC.conflicts(edited)
@@ -204,9 +208,9 @@ def test_grid_spec():
     older = SPEC.store_attrs()  # a store written before a setting existed still resumes
     older["fidelity_settings"] = {k: v for k, v in older["fidelity_settings"].items() if k != "inverse_tol_mm"}
     assert SPEC.conflicts(older) == []
-    assert parse_axis("--epi", "-60, -65") == (-60.0, -65.0) and parse_axis("--epi", "") == ()
+    assert parse_axis("epi", "-60, -65") == (-60.0, -65.0) and parse_axis("epi", "") == ()
     with pytest.raises(ValueError, match="comma-separated"):
-        parse_axis("--pressures", "4;6")
+        parse_axis("pressures", "4;6")
     # precedence: explicit > --local preset > store's values > paper defaults
     assert resolve_spec({"shapes": None}, local=True) == LOCAL_SPEC
     assert resolve_spec({"fidelity": None}, stored_attrs={**SPEC.store_attrs()}) == SPEC

@@ -18,7 +18,11 @@ from typer.testing import CliRunner
 from cli import app
 from orchestrator.grid import SweepSpec
 from orchestrator.sweep import check_request
-from storage.store import DONE, PENDING, PairReader, PairStore, StoreError, summarize
+from storage.location import StoreError
+from storage.reader import PairReader
+from storage.schema import DONE, PENDING
+from storage.status import summarize
+from storage.writer import PairStore
 from trainer_fixtures import case_chunk, make_tiny_store
 
 runner = CliRunner()
@@ -160,11 +164,11 @@ def test_export_train_and_generate_say_damage_in_one_line(store, damage, case, t
     assert isinstance(res.exception, SystemExit) and len(res.output.strip().splitlines()) == 1
     assert loc in res.output and "--retry-damaged" in res.output
 
-    from trainer.data import read_store
-    with pytest.raises(StoreError, match=r"shape 0 .*damaged.*--retry-damaged"):
+    from trainer.data.store_cases import read_store
+    with pytest.raises(StoreError, match=r"shape 0 .*damaged.*`retry_damaged`"):
         read_store(loc)
     if damage is not delete_case_object:  # found without reading the cases: refused before Ray starts
-        with pytest.raises(StoreError, match=r"shape 0 .*is damaged: .*`heartctl generate --retry-damaged`"):
+        with pytest.raises(StoreError, match=r"shape 0 .*is damaged: .*generating with `retry_damaged`"):
             check_request(SweepSpec.from_attrs(attrs), loc, for_writing=False)
         check_request(SweepSpec.from_attrs(attrs), loc, for_writing=False, retry_damaged=True)
 

@@ -18,7 +18,9 @@ pytest.importorskip("s3fs", reason="s3:// store tests need s3fs (pip install -e 
 from cli import app  # noqa: E402
 from killed_driver import generate_killed_after_first_write  # noqa: E402
 from local_ray import start_local_ray, stop_local_ray  # noqa: E402
-from storage.store import DONE, PENDING, PairReader, PairStore  # noqa: E402
+from storage.reader import PairReader  # noqa: E402
+from storage.schema import DONE, PENDING  # noqa: E402
+from storage.writer import PairStore  # noqa: E402
 
 BUCKET = "heartctl-test"
 # one shape, 3 pressure chains of 2 cases (fast preset, a coarse mesh); one chain in flight at a time
@@ -325,7 +327,7 @@ def test_server_stopped_mid_sweep_then_rerun_resumes(s3, local_reference, monkey
     two cases): one line, exit 1; the cases marked done read back intact, the half-written ones are not
     done; once the server is back the same command finishes the store."""
     import orchestrator.sweep as sweep
-    from storage.store import _write_rows
+    from storage.writer import _write_rows
 
     url = _url("stopped/pairs.zarr")
     monkeypatch.setattr(sweep, "FLUSH_INTERVAL_S", 0.0)  # the case table written after every chain

@@ -15,9 +15,11 @@ import pytest
 import zarr
 
 from orchestrator.plan import store_objects
-from orchestrator.sweep import HeldResults
-from storage.store import (CHUNK_PER_CASE, DONE, PENDING, PairReader, PairStore, StoreError, inspect_store,
-                           read_cases, stats_row)
+from orchestrator.pacing import HeldResults
+from storage.location import StoreError
+from storage.reader import PairReader, read_cases
+from storage.schema import CHUNK_PER_CASE, DONE, PENDING, inspect_store
+from storage.writer import PairStore, stats_row
 from trainer_fixtures import (case_chunk, flip_byte, flip_index_byte, lv_mesh, make_tiny_store, synthetic_unloaded,
                               tiny_spec)
 
@@ -144,7 +146,7 @@ def test_a_damaged_index_in_a_shard_without_done_cases_is_rewritten_and_with_the
     assert PairReader(store.location).damaged() == []
 
     flip_index_byte(store.location, 0)
-    with pytest.raises(StoreError, match=r"shape 0: the index of its case shard is damaged; .*--retry-damaged"):
+    with pytest.raises(StoreError, match=r"shape 0: the index of its case shard is damaged; .*`retry_damaged`"):
         PairStore.open(store.location).write_pairs(0, _pairs(again, [0]))
 
 
@@ -174,7 +176,7 @@ def test_a_version_1_store_reads_and_resumes_as_it_is(tmp_path):
     assert [c.index for c in reader.iter_done()] == [0, 1, 2, 3]
     flip_byte(store.location, 0, "unloaded", 2)
     assert reader.damaged() == [(0, 2, "its checksum does not match (changed bytes)")]
-    from storage.store import case_layout
+    from storage.schema import case_layout
     assert case_layout(reader.attrs) == CHUNK_PER_CASE
 
 
@@ -184,7 +186,7 @@ KILLED_WRITER = """
 import builtins, io, os, pathlib, signal, sys
 sys.path.insert(0, {tests!r})
 from test_store_shards import _pairs
-from storage.store import PairStore
+from storage.writer import PairStore
 
 class Dying(io.FileIO):
     def write(self, b):

@@ -17,7 +17,10 @@ from orchestrator.grid import SweepSpec
 from orchestrator.sweep import run_sweep
 from killed_driver import generate_killed_after_first_write
 from process_tree import processes_titled
-from storage.store import DONE, FAILED, STAT_NAMES, PairReader, PairStore, inspect_store, summarize
+from storage.reader import PairReader
+from storage.schema import DONE, FAILED, STAT_NAMES, inspect_store
+from storage.status import summarize
+from storage.writer import PairStore
 
 COL = {n: i for i, n in enumerate(STAT_NAMES)}
 
@@ -356,7 +359,7 @@ def test_retry_damaged_recomputes_missing_data_and_a_shape_with_edited_metadata(
     edited: verify names both, a plain sweep refuses the store in one line, and one with retry_damaged
     recomputes shape 0's cases and meshes shape 1 again (on a Ray worker, the mesh this process makes of
     the store's shape model version) and solves its cases, after which every case reads back intact."""
-    from storage.store import StoreError
+    from storage.location import StoreError
     from test_store_damage import add_nodes_to
     from trainer_fixtures import case_chunk, make_tiny_store
 

@@ -130,7 +130,7 @@ def test_an_unexpected_error_fails_its_case_only(mesh, monkeypatch):
 
 
 def test_in_flight_limit_follows_the_cluster_as_nodes_join():
-    from orchestrator.sweep import InFlightLimit
+    from orchestrator.pacing import InFlightLimit
 
     now, cpus = [0.0], [0.0]  # an autoscaling cluster: a head with no CPUs
     limit = InFlightLimit(None, lambda: cpus[0], every_s=5.0, clock=lambda: now[0])
@@ -149,7 +149,7 @@ def test_a_case_lost_with_its_worker_is_pending_then_failed_after_three_runs(tmp
     import ray
 
     from orchestrator.sweep import MAX_LOSSES, _failed_task_results
-    from storage.store import PairStore
+    from storage.writer import PairStore
 
     spec = SweepSpec(shapes=1, pressure_mmhg=(8.0, 12.0), stiffness_pa=(100.0,), helix_endo_deg=(60.0,),
                      helix_epi_deg=(-60.0,), fidelity="fast", nodes=200)
@@ -250,7 +250,7 @@ def test_one_workspace_serves_pairs_of_other_supports_in_turn():
     symmetric-part factorisation kept."""
     from dataclasses import replace as dc_replace
 
-    from solver.convergence import CASES, convergence_shape
+    from bench.convergence import CASES, convergence_shape
     from solver.lv import PairWorkspace, make_pair
     from solver.meshing import mesh_lv
 

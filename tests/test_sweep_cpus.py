@@ -5,7 +5,7 @@ from __future__ import annotations
 from typer.testing import CliRunner
 
 from cli import app
-from orchestrator.sweep import cpus_used
+from orchestrator.pacing import cpus_used
 
 
 def test_cpus_used_counts_workers_per_node_up_to_its_cpus():

@@ -7,7 +7,8 @@ import errno
 from typer.testing import CliRunner
 
 from cli import app
-from storage.store import PairReader, PairStore
+from storage.reader import PairReader
+from storage.writer import PairStore
 
 # two pressure chains of three cases, the shard written once for each
 ARGS = ["generate", "--shapes", "1", "--pressures", "8,10,12", "--stiffness", "150,200", "--endo", "60", "--epi=-60",

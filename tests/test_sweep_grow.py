@@ -16,7 +16,11 @@ from typer.testing import CliRunner
 from orchestrator.grid import SweepSpec
 from orchestrator.plan import make_plan
 from orchestrator.sweep import run_sweep
-from storage.store import DONE, PairReader, PairStore, StoreError, case_layout, inspect_store, summarize
+from storage.location import StoreError
+from storage.reader import PairReader
+from storage.schema import DONE, case_layout, inspect_store
+from storage.status import summarize
+from storage.writer import PairStore
 
 ARGS = ["--pressures", "8,12", "--stiffness", "100", "--endo", "60", "--epi=-60", "--fidelity", "fast",
         "--nodes", "200"]
@@ -114,11 +118,12 @@ def test_a_version_1_store_grows_in_its_own_layout(ray_cluster, tmp_path):
 
 def test_shape_count_checks_without_ray(tmp_path):
     """The request check, the store's own guard, and a training run's store fingerprint."""
-    from trainer.data import TrainerError, check_fingerprint, store_fingerprint
+    from trainer.data.store_cases import check_fingerprint, store_fingerprint
+    from trainer.errors import TrainerError
 
     small, large = spec(2).store_attrs(), spec(3).store_attrs()
     assert spec(3).conflicts(small) == [] and spec(3).grows(small) == 2 and spec(2).grows(small) is None
-    assert spec(1).conflicts(small) == ["--shapes 1 (store has 2; shrinking a store is not supported)"]
+    assert spec(1).conflicts(small) == ["shapes=1 (store has 2; shrinking a store is not supported)"]
 
     store = PairStore.create(str(tmp_path / "s.zarr"), small)
     with pytest.raises(StoreError, match="shrinking"):
@@ -144,10 +149,11 @@ def test_a_run_trained_on_the_smaller_store_is_evaluated_on_it_grown_not_resumed
     CLI. Evaluation scores the run's own split, whose cases the grown store holds unchanged."""
     from dataclasses import replace
 
-    from storage.store import stats_row
-    from trainer.config import PAPER, TrainConfig, TrainerError
-    from trainer.evaluate import evaluate_run
-    from trainer.loop import fit
+    from storage.writer import stats_row
+    from trainer.config import PAPER, TrainConfig
+    from trainer.errors import TrainerError
+    from trainer.evaluation.evaluate import evaluate_run
+    from trainer.training.loop import fit
     from trainer_fixtures import lv_mesh, make_tiny_store, synthetic_unloaded, tiny_spec
 
     loc = make_tiny_store(tmp_path / "tiny.zarr", shapes=4)
@@ -167,7 +173,7 @@ def test_a_run_trained_on_the_smaller_store_is_evaluated_on_it_grown_not_resumed
         store.set_case(4, k, DONE, stats_row(stats))
     store.flush()
 
-    with pytest.raises(TrainerError, match="grew from 4 to 5 shapes; train on the grown store with a new --run-dir"):
+    with pytest.raises(TrainerError, match="grew from 4 to 5 shapes; train on the grown store with a new `run_dir`"):
         fit(replace(cfg, epochs=2), tmp_path / "run")
     again = evaluate_run(tmp_path / "run", loc, "test", plots=False)
     assert again["summary"]["cases"] == scored["summary"]["cases"] == 4

@@ -6,7 +6,7 @@ from cli import app
 from solver.meshing import mesh_lv
 from solver.shape_model import lv_shape
 from storage.meshfiles import write_mesh
-from storage.store import PairReader
+from storage.reader import PairReader
 
 
 def test_generate_from_user_meshes_in_cm_and_resume(tmp_path, local_ray):
@@ -25,7 +25,7 @@ def test_generate_from_user_meshes_in_cm_and_resume(tmp_path, local_ray):
     assert reader.attrs["shape_source"] == "files" and len(reader.attrs["meshes"]) == 2
     for i, m in enumerate(originals):
         np.testing.assert_allclose(reader.mesh(i).nodes, m.nodes, atol=1e-9)  # cm → mm
-        assert np.all(np.isnan(reader._static(i)["coefficients"]))
+        assert np.all(np.isnan(reader.shape_arrays(i)["coefficients"]))
     assert len(reader.done_cases()) == 2
     again = CliRunner().invoke(app, args)
     assert again.exit_code == 0 and "nothing to run" in again.output

@@ -14,9 +14,9 @@ from solver.lv import inverse_solve
 from solver.parameters import CaseParameters
 from solver.reinflate import reinflation_error
 from storage.meshfiles import write_mesh
-from trainer.config import TrainerError
-from trainer.trade import (TradeSpec, box_cases, choose_method, held_out_cases, parse_method, run_trade,
-                           write_report)
+from trainer.errors import TrainerError
+from app.method_choice import choose_method, parse_method
+from bench.trade import TradeSpec, box_cases, held_out_cases, run_trade, write_report
 from trainer_fixtures import lv_mesh, make_tiny_store
 
 runner = CliRunner()
@@ -90,7 +90,7 @@ def test_box_cases_mid_then_hardest_corner():
     later = held_out_cases({"grid": grid, "shape_nodes": {"0": 300, "3": 310}, "mesh_nodes": 350, "seed": 2},
                            TradeSpec(("r",), shapes=2, cases=1, user_nodes=0, first_shape=20))
     assert [c.shape_id for c in later] == [20, 21]  # the held-out shapes of a run on a larger store
-    with pytest.raises(TrainerError, match="--first-shape 3: the run's store holds shapes 0–3"):
+    with pytest.raises(TrainerError, match="first_shape=3: the run's store holds shapes 0–3"):
         held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350}, TradeSpec(("r",), first_shape=3))
     other = held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350, "seed": 1},
                            TradeSpec(("r",), shapes=2, cases=1, user_nodes=0, seed=0))
@@ -123,7 +123,7 @@ def test_choose_method_cheapest_that_met_the_tolerance():
 def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):
     """run_trade end to end on one held-out case (its reference made cheap here: `accurate` on the
     mesh itself), then the report and the choice it drives."""
-    import trainer.trade as trade
+    import bench.trade as trade
 
     real = trade.inverse_solve
     monkeypatch.setattr(trade, "inverse_solve", lambda ed, params, preset, *a, **k:

@@ -5,7 +5,7 @@ import statistics
 
 import pytest
 
-from trainer.ablation import TABLE_METRICS, summarise_seeds
+from bench.ablation import TABLE_METRICS, summarise_seeds
 
 
 def _result(seed: int, md: dict) -> dict:
@@ -40,8 +40,8 @@ def test_summarise_one_seed_has_zero_sd():
 
 
 def test_learning_curve_power_law_by_hand():
-    from trainer.config import TrainerError
-    from trainer.learning_curve import fit_power_law, pairs_for, parse_fractions
+    from trainer.errors import TrainerError
+    from bench.learning_curve import fit_power_law, pairs_for, parse_fractions
 
     n = [100, 200, 400, 800]
     law = fit_power_law(n, [3.0 * v ** -0.5 for v in n])

@@ -1,4 +1,4 @@
-"""Rotation about the long axis and scaling about the base as augmentation (trainer.augment): one angle
+"""Rotation about the long axis and scaling about the base as augmentation (trainer.data.augment): one angle
 (or factor) per graph, applied to coordinates and labels alike, within the asked range, never writing
 the dataset's graphs."""
 import math
@@ -8,8 +8,9 @@ import pytest
 import torch
 from torch_geometric.data import Batch, Data
 
-from trainer.augment import rotate_batch, rotate_xy, scale_batch
-from trainer.config import TrainConfig, TrainerError
+from trainer.data.augment import rotate_batch, rotate_xy, scale_batch
+from trainer.config import TrainConfig
+from trainer.errors import TrainerError
 
 
 def _graph(n: int, seed: int, labelled: bool = True) -> Data:
@@ -62,9 +63,9 @@ def test_zero_degrees_is_the_identity_and_the_range_is_checked():
     batch = Batch.from_data_list([_graph(10, 0)])
     x = batch.x
     assert rotate_batch(batch, 0.0).x is x
-    with pytest.raises(TrainerError, match="--rotate-deg"):
+    with pytest.raises(TrainerError, match="`rotate_deg`"):
         TrainConfig(store="s.zarr", rotate_deg=181.0)
-    with pytest.raises(TrainerError, match="--rotate-deg"):
+    with pytest.raises(TrainerError, match="`rotate_deg`"):
         TrainConfig(store="s.zarr", rotate_deg=-1.0)
 
 
@@ -96,7 +97,7 @@ def test_zero_percent_is_the_identity_and_the_range_is_checked():
     batch = Batch.from_data_list([_graph(10, 0)])
     x = batch.x
     assert scale_batch(batch, 0.0).x is x
-    with pytest.raises(TrainerError, match="--scale-pct"):
+    with pytest.raises(TrainerError, match="`scale_pct`"):
         TrainConfig(store="s.zarr", scale_pct=31.0)
-    with pytest.raises(TrainerError, match="--scale-pct"):
+    with pytest.raises(TrainerError, match="`scale_pct`"):
         TrainConfig(store="s.zarr", scale_pct=-1.0)

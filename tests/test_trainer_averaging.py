@@ -8,10 +8,10 @@ import pytest
 import torch
 from torch import nn
 
-from trainer.averaging import WeightAverage
-from trainer.checkpoint import load_run
+from trainer.network.averaging import WeightAverage
+from trainer.training.checkpoint import load_run
 from trainer.config import TrainConfig, named_config
-from trainer.loop import fit
+from trainer.training.loop import fit
 from trainer_fixtures import make_tiny_store
 
 

@@ -10,9 +10,10 @@ from torch.utils.data import BatchSampler, RandomSampler
 from torch_geometric.data import Batch
 from torch_geometric.loader import DataLoader
 
-from trainer.batching import GraphTable, chunks
-from trainer.data import Normalisation, case_graph, mesh_features
-from trainer.loop import TableLoader
+from trainer.data.batching import GraphTable, chunks
+from trainer.data.features import case_graph, mesh_features
+from trainer.data.normalisation import Normalisation
+from trainer.training.loop import TableLoader
 from trainer_fixtures import lv_mesh, synthetic_unloaded
 
 
@@ -79,7 +80,7 @@ def test_attention_graph_from_the_table_gives_the_same_model_outputs(config):
     from dataclasses import replace
 
     from trainer.config import named_config
-    from trainer.model import build_model
+    from trainer.network.model import build_model
 
     graphs = _graphs(True)
     cfg = replace(named_config(config), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8, reverse_weight=0.5)
@@ -132,7 +133,7 @@ def test_table_on_cuda_equals_host_collation():
     graph = b.attention_graph
     del b.attention_graph
     assert_same_batch(b, Batch.from_data_list([graphs[i] for i in order]))
-    from trainer.sparse_gat import AttentionGraph
+    from trainer.network.sparse_gat import AttentionGraph
 
     ref = AttentionGraph.from_edge_index(b.edge_index, b.num_nodes)
     assert torch.equal(graph.src, ref.src) and torch.equal(graph.heads(4).val_perm, ref.heads(4).val_perm)
@@ -143,7 +144,7 @@ def test_table_on_cuda_equals_host_collation():
     from dataclasses import replace
 
     from trainer.config import named_config
-    from trainer.model import build_model
+    from trainer.network.model import build_model
 
     model = build_model(replace(named_config("paper"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8),
                         0.1).cuda().eval()

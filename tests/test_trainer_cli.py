@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from cli import app
 from storage.meshfiles import write_mesh
-from trainer.checkpoint import load_run
+from trainer.training.checkpoint import load_run
 from trainer_fixtures import flip_byte, lv_mesh, make_tiny_store
 
 runner = CliRunner()
@@ -95,7 +95,7 @@ def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
     """--method hybrid hands fidelity, base and fibres on to the inverse FE solve."""
     import solver.lv
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     seen = {}
 
@@ -118,7 +118,7 @@ def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(t
     import solver.lv
     from solver.forward import SolveError
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     calls = []
 
@@ -269,7 +269,7 @@ def test_bench_ablation_table(trained, tmp_path):
     again = json.loads(run(*args).output.strip().splitlines()[-1])
     assert again["rows"][0]["md_mm"] == pytest.approx(table["rows"][0]["md_mm"])
     assert_bad_input(run("bench", "ablation", "--store", trained["store"], "--root", tmp_path / "x",
-                         "--configs", "paper,B7"), "unknown --config")
+                         "--configs", "paper,B7"), "unknown configuration 'B7'")
 
 
 def test_bench_ablation_over_seeds(trained, tmp_path):
@@ -306,7 +306,7 @@ def test_bench_learning_curve(trained, tmp_path):
     assert r.exit_code == 0, r.output
     assert "pairs^(" in r.output and "learning_curve.json" in r.output  # a rerun resumes and prints the fit
     for args, words in ((("--fractions", "1"), "at least two"), (("--fractions", "0,1"), "(0, 1]"),
-                        (("--target-dsc", "1"), "target-dsc"), (("--config", "B7"), "unknown --config"),
+                        (("--target-dsc", "1"), "target-dsc"), (("--config", "B7"), "unknown configuration"),
                         (("--fractions", "0.3,0.34"), "same training cases")):  # both keep 1 of 3 shapes
         assert_bad_input(run("bench", "learning-curve", "--store", trained["store"], "--root", tmp_path / "bad",
                              *args), words)
@@ -319,7 +319,7 @@ def test_ensemble_is_the_mean_of_its_members_and_reports_their_spread(trained, t
     """`--run A --run B`: evaluate scores the mean of the two networks' answers; unload writes it with
     the members' per-node spread; a member with another split (seed) is refused."""
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     other = trained["root"] / "run_a1"
     r = run("train", "--store", trained["store"], "--run-dir", other, "--no-ray", "--epochs", 1, "--batch-size", 8,
@@ -378,7 +378,7 @@ def _copied_run(trained, tmp_path, name, change) -> "Path":
     """A copy of the trained run whose checkpoint `change(state)` edits (a damaged or diverged run)."""
     import shutil
 
-    from trainer.checkpoint import save_checkpoint
+    from trainer.training.checkpoint import save_checkpoint
 
     d = tmp_path / name
     shutil.copytree(trained["run"], d)
@@ -392,7 +392,7 @@ def test_network_unloading_does_not_depend_on_where_the_mesh_lies(trained):
     """The FE answer is the same wherever the ED mesh lies; the network places every mesh in the
     training frame (centroid on the long axis, base at z = 0) first, so its answer is the same too."""
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     m = lv_mesh(1)
     params = CaseParameters(10.0, 150.0, 60.0, -60.0)
@@ -476,7 +476,7 @@ def test_evaluation_folder_holds_one_evaluation_and_write_errors_are_one_line(tr
     assert r.exit_code == 0, r.output
     assert (trained["run"] / "eval_test_rot2" / "summary.json").is_file()
 
-    import trainer.evaluate
+    import trainer.evaluation.evaluate
 
     def disk_full(path, rows):
         raise OSError(28, "No space left on device")
@@ -485,10 +485,10 @@ def test_evaluation_folder_holds_one_evaluation_and_write_errors_are_one_line(tr
         raise AssertionError("predicted before checking the output folder")
 
     with monkeypatch.context() as m:  # an unusable --out is refused before any case is predicted
-        m.setattr(trainer.evaluate.Ensemble, "predict_many", no_prediction)
+        m.setattr(trainer.evaluation.evaluate.Ensemble, "predict_many", no_prediction)
         assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out",
                              out / "summary.json" / "sub"), "cannot write the evaluation")
-    monkeypatch.setattr(trainer.evaluate, "write_csv", disk_full)
+    monkeypatch.setattr(trainer.evaluation.evaluate, "write_csv", disk_full)
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--out", out, "--no-plots"),
                      "cannot write the evaluation", "No space left")
     assert not (out / "summary.json").exists()
@@ -497,7 +497,7 @@ def test_evaluation_folder_holds_one_evaluation_and_write_errors_are_one_line(tr
 def test_ensemble_warnings_speak_for_every_member(trained, tmp_path):
     """An ensemble extrapolates where any member does: each member's training grid is checked."""
     from solver.parameters import CaseParameters
-    from trainer.predict import unload_with_network
+    from trainer.evaluation.predict import unload_with_network
 
     low = _copied_run(trained, tmp_path, "low_pressures",
                       lambda s: s["normalisation"].update(param_lo=[4.0, *s["normalisation"]["param_lo"][1:]],
@@ -627,10 +627,10 @@ def test_sigterm_stops_training_like_ctrl_c(trained, tmp_path):
 
 def test_train_help_names_every_base_configuration_and_the_preset():
     """`train --help` lists every base name and `recommended`; the compatibility names stay unadvertised."""
-    import cli
+    from app.terminal import options
     from trainer import config
 
-    assert cli.CONFIG_HELP is config.CONFIG_HELP
+    assert options.CONFIG_HELP is config.CONFIG_HELP
     for name in (*config.BASE_CONFIGS, *config.PRESETS):
         assert name in config.CONFIG_HELP or name.startswith("R"), name  # R1–R5 as a range
     assert "R1–R5" in config.CONFIG_HELP and not any(alias in config.CONFIG_HELP for alias in config.ALIASES)
@@ -668,7 +668,7 @@ def test_train_composes_the_configuration_from_options_and_evaluate_prints_it(tr
     (("--set", "hidden=1.5"), ("hidden takes an integer",)),
     (("--ema", "1"), ("ema_decay must be in [0, 1)",)),
     (("--node-input", "resp"), ("--node-input must be one of xyz, wall, response",)),
-    (("--config", "A1emma"), ("unknown --config 'A1emma'", "recommended")),
+    (("--config", "A1emma"), ("unknown configuration 'A1emma'", "recommended")),
 ])
 def test_bad_configuration_options_are_one_line(trained, tmp_path, args, words):
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", tmp_path / "r", "--no-ray", *args), *words)
@@ -731,14 +731,13 @@ def test_evaluate_against_a_reference_store(trained, tmp_path):
     assert not (tmp_path / "e3").exists() and not (tmp_path / "e4").exists()
     assert_bad_input(run("evaluate", "--run", trained["run"], "--store", trained["store"], "--reference",
                          trained["store"], "--no-plots", "--out", tmp_path / "e5"),
-                     "is of the 'fast' fidelity; --reference takes a store made with `heartctl generate --fidelity "
-                     "reference`")
+                     "is of the 'fast' fidelity; --reference takes a store generated with the reference fidelity")
     assert not (tmp_path / "e5").exists()
 
 
 def test_a_reference_no_finer_than_the_labels_is_refused(tmp_path):
-    from trainer.config import TrainerError
-    from trainer.reference import check_reference_fidelity
+    from trainer.errors import TrainerError
+    from trainer.evaluation.reference import check_reference_fidelity
 
     check_reference_fidelity("r.zarr", "reference", "accurate")
     with pytest.raises(TrainerError, match="no finer than the evaluated store's labels"):
@@ -869,8 +868,8 @@ def test_a_full_disk_in_a_ray_train_failure_is_found_and_named(tmp_path):
     storage): a DiskFullError or an OSError ENOSPC anywhere in that chain becomes the one line."""
     import errno
 
-    from trainer.checkpoint import DiskFullError
-    from trainer.ray_train import worker_disk_full
+    from trainer.training.checkpoint import DiskFullError
+    from trainer.training.ray_train import worker_disk_full
 
     class WorkerGroupError(Exception):
         def __init__(self, failures):
@@ -892,7 +891,7 @@ def test_a_full_disk_in_a_ray_train_failure_is_found_and_named(tmp_path):
 def test_evaluate_says_a_run_is_unfinished(trained, tmp_path):
     """A run killed in training (its checkpoint of epoch 2 of 6, not its last): evaluate's table comes
     with one warning naming the epoch it stopped at; --json carries it."""
-    from trainer.checkpoint import save_checkpoint
+    from trainer.training.checkpoint import save_checkpoint
 
     cut = tmp_path / "cut"
     shutil.copytree(trained["run"], cut)

@@ -7,8 +7,9 @@ from dataclasses import fields, replace
 
 import pytest
 
-from trainer.config import (ALIASES, PAPER, ModelConfig, TrainConfig, TrainerError, compose, describe_model,
-                            describe_run, named_config)
+from trainer.config import (ALIASES, PAPER, ModelConfig, TrainConfig, compose, describe_model, describe_run,
+                            named_config)
+from trainer.errors import TrainerError
 
 # the compatibility names' networks, spelt out field by field as trainer/config.py defines them
 _RESP = dict(cycle=False, ema_decay=0.99, node_features="wall-response", dropout=0.0)
@@ -73,9 +74,9 @@ def test_set_reads_each_fields_type_and_is_applied_last():
 
 
 @pytest.mark.parametrize("settings,words", [
-    (["hiden=8"], "unknown --set key 'hiden'"),
-    (["scale_pct=8"], "unknown --set key 'scale_pct'"),  # it has an option of its own
-    (["hidden"], "--set takes key=value"),
+    (["hiden=8"], "unknown `set` key 'hiden'"),
+    (["scale_pct=8"], "unknown `set` key 'scale_pct'"),  # it has an option of its own
+    (["hidden"], "`set` takes key=value"),
     (["hidden=1.5"], "hidden takes an integer"),
     (["cycle=maybe"], "cycle takes true or false"),
     (["lambda_cycle=inf"], "lambda_cycle takes a finite number"),

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.config import TrainerError
-from trainer.data import Normalisation, build_training_data, read_store
-from trainer.splits import make_split, parse_split, subsample_shapes, supervised_subset
+from trainer.errors import TrainerError
+from trainer.data.store_cases import build_training_data, read_store
+from trainer.data.normalisation import Normalisation
+from trainer.data.splits import make_split, parse_split, subsample_shapes, supervised_subset
 from trainer_fixtures import make_tiny_store
 
 
@@ -76,7 +77,7 @@ def test_graphs_hold_normalised_coordinates_targets_and_params(store):
 def test_normalisation_uses_the_training_split_only(store):
     b = build_training_data(store, "shape", seed=0)
     c = b.cases
-    from trainer.data import placed_nodes
+    from trainer.data.normalisation import placed_nodes
 
     train_ed = [placed_nodes(c.features[k[0]].ed_mm, c.features[k[0]].base_nodes) for k in b.split["train"]]
     every_ed = [placed_nodes(c.features[k[0]].ed_mm, c.features[k[0]].base_nodes) for k in c.keys]
@@ -116,7 +117,7 @@ def test_supervision_ratio_really_removes_labels(store):
 def test_label_seed_draws_other_labels_on_the_same_split(store):
     """--label-seed: another labelled subset of the same size; split and test cases unchanged."""
     from trainer.config import TrainConfig
-    from trainer.loop import check_same_run
+    from trainer.training.loop import check_same_run
 
     default = build_training_data(store, "shape", seed=0, sr=0.25)
     same = build_training_data(store, "shape", seed=0, sr=0.25, label_seed=0)
@@ -134,9 +135,9 @@ def test_label_seed_draws_other_labels_on_the_same_split(store):
         check_same_run({"train_config": old.as_dict()}, cfg, "runs/x")
     with pytest.raises(TrainerError, match="label_seed"):
         check_same_run({"train_config": cfg.as_dict()}, old, "runs/x")
-    with pytest.raises(TrainerError, match="needs --sr"):
+    with pytest.raises(TrainerError, match="needs `sr`"):
         TrainConfig(store=store, label_seed=1)
-    with pytest.raises(TrainerError, match="label-seed"):
+    with pytest.raises(TrainerError, match="`label_seed`"):
         TrainConfig(store=store, sr=0.25, label_seed=-1)
 
 
@@ -161,7 +162,7 @@ def test_train_fraction_keeps_whole_nested_training_shapes(store):
     from trainer.config import TrainConfig
 
     for bad in (0.0, 1.5, float("nan")):
-        with pytest.raises(TrainerError, match="train-fraction"):
+        with pytest.raises(TrainerError, match="`train_fraction`"):
             TrainConfig(store="s", train_fraction=bad)
     assert TrainConfig(store="s").identity() != TrainConfig(store="s", train_fraction=0.5).identity()
 
@@ -169,7 +170,7 @@ def test_train_fraction_keeps_whole_nested_training_shapes(store):
 def test_normalisation_is_fitted_and_applied_in_the_training_frame(store):
     """Meshes lying anywhere: the fitted scale is that of the placed meshes, and a moved mesh gets the
     same network input as where it lay."""
-    from trainer.data import Normalisation, placed_nodes
+    from trainer.data.normalisation import Normalisation, placed_nodes
 
     b = build_training_data(store, "shape", seed=0)
     key = b.split["train"][0]

@@ -9,9 +9,12 @@ import pytest
 import torch
 from torch_geometric.data import Batch
 
-from trainer.config import TrainerError, named_config
-from trainer.data import Normalisation, build_training_data, case_graph, fit_load_scale, load_features, mesh_features
-from trainer.model import build_model
+from trainer.config import named_config
+from trainer.errors import TrainerError
+from trainer.data.store_cases import build_training_data
+from trainer.data.features import case_graph, mesh_features
+from trainer.data.normalisation import Normalisation, fit_load_scale, load_features
+from trainer.network.model import build_model
 from trainer_fixtures import lv_mesh, make_tiny_store, synthetic_unloaded
 
 

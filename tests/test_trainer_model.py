@@ -9,9 +9,11 @@ import pytest
 import torch
 from torch_geometric.data import Batch
 
-from trainer.config import NAMED_CONFIGS, ModelConfig, TrainerError, named_config
-from trainer.data import Normalisation, case_graph, mesh_edges, mesh_features
-from trainer.model import CrossAttention, build_model, count_parameters, loss_terms
+from trainer.config import NAMED_CONFIGS, ModelConfig, named_config
+from trainer.errors import TrainerError
+from trainer.data.features import case_graph, mesh_edges, mesh_features
+from trainer.data.normalisation import Normalisation
+from trainer.network.model import CrossAttention, build_model, count_parameters, loss_terms
 from trainer_fixtures import lv_mesh, synthetic_unloaded
 
 GNN_CONFIGS = [name for name, c in NAMED_CONFIGS.items() if c.kind == "gnn"]

@@ -10,10 +10,11 @@ from torch_geometric.data import Batch
 
 from solver.lv import forward_solve, linear_response
 from solver.parameters import CaseParameters
-from trainer.augment import rotate_batch
+from trainer.data.augment import rotate_batch
 from trainer.config import named_config
-from trainer.data import Normalisation, case_graph, linear_response_feature, mesh_features
-from trainer.model import build_model
+from trainer.data.features import case_graph, linear_response_feature, mesh_features
+from trainer.data.normalisation import Normalisation
+from trainer.network.model import build_model
 from trainer_fixtures import lv_mesh, synthetic_unloaded
 
 PARAMS = CaseParameters(1.0, 150.0, 65.0, -65.0)

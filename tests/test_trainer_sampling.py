@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from trainer.config import ModelConfig, TrainConfig, TrainerError, named_config
-from trainer.sampling import MixedBatchSampler, labelled_per_batch
+from trainer.config import ModelConfig, TrainConfig, named_config
+from trainer.errors import TrainerError
+from trainer.data.sampling import MixedBatchSampler, labelled_per_batch
 
 
 def test_labelled_per_batch():

@@ -11,10 +11,10 @@ import pytest
 from solver.meshing import mesh_lv
 from solver.parameters import CaseParameters
 from solver.shape_model import shape_from_coefficients
-from trainer.checkpoint import load_run, run_checkpoint_path, save_checkpoint
+from trainer.training.checkpoint import load_run, run_checkpoint_path, save_checkpoint
 from trainer.config import PAPER, TrainConfig
-from trainer.loop import fit
-from trainer.predict import unload_with_network
+from trainer.training.loop import fit
+from trainer.evaluation.predict import unload_with_network
 from trainer_fixtures import lv_mesh, make_tiny_store
 
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
@@ -51,7 +51,7 @@ def test_own_shape_draws_no_warning(run):
 def test_thin_wall_draws_a_warning_naming_it(run):
     thin = mesh_lv(shape_from_coefficients([0.0, 0.0, -4.0, 0.0, -1.0, 0.0]), 120)  # a ~5 mm wall
     lines = _shape_lines(thin, run)
-    assert len(lines) == 1 and "wall" in lines[0] and "--check" in lines[0] and "--method hybrid" in lines[0]
+    assert len(lines) == 1 and "wall" in lines[0] and "`check`" in lines[0] and "`method` hybrid" in lines[0]
 
 
 def test_off_axis_apex_draws_a_warning_naming_it(run):

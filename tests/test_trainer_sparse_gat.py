@@ -12,9 +12,9 @@ from torch_geometric.data import Batch
 from torch_geometric.nn import GATConv
 
 from trainer.config import TrainConfig, named_config
-from trainer.data import mesh_features
-from trainer.model import build_model
-from trainer.sparse_gat import AttentionGraph, SparseGATConv
+from trainer.data.features import mesh_features
+from trainer.network.model import build_model
+from trainer.network.sparse_gat import AttentionGraph, SparseGATConv
 from trainer_fixtures import lv_mesh
 
 
@@ -26,7 +26,8 @@ def lv_edges():
 
 def _lv_batch(shape: int) -> Batch:
     """One unlabelled case on a real LV mesh, as a batch of one graph."""
-    from trainer.data import Normalisation, case_graph
+    from trainer.data.features import case_graph
+    from trainer.data.normalisation import Normalisation
 
     m = lv_mesh(shape)
     norm = Normalisation(tuple(m.nodes.mean(axis=0)), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60))
@@ -104,7 +105,7 @@ def test_cuda_kernel_matches_pyg(lv_edges, bf16):
 
 
 def _prepared_setup(device, gat_kernel="sparse"):
-    from trainer.static import PreparedCase
+    from trainer.network.prepared import PreparedCase
 
     batch = _lv_batch(1).to(device)
     torch.manual_seed(4)
@@ -155,7 +156,7 @@ def test_prepared_case_not_capturable_stays_eager_and_leaves_dropout_working():
 def test_shifted_cat_spread_equals_one_add_per_tensor():
     """The GPU's way (shifts spread by repeat_interleave) gives the CPU's (one add per tensor), for
     index vectors and for edge lists [2, E]."""
-    from trainer.sparse_gat import shifted_cat
+    from trainer.network.sparse_gat import shifted_cat
 
     g = torch.Generator().manual_seed(3)
     for shape in [(7,), (2, 5), (1,), (0,)]:

@@ -12,13 +12,14 @@ import numpy as np
 import pytest
 import torch
 
-from trainer.checkpoint import load_checkpoint, load_run, save_checkpoint
-from trainer.config import PAPER, TrainConfig, TrainerError, named_config
-from trainer.evaluate import evaluate_run
-from trainer.loop import Dist, fit
-from trainer.metrics import case_metrics, dsc, hausdorff, nn_mean_distance, nodewise_error
-from trainer.predict import Predictor
-from trainer.schedule import cosine_lr
+from trainer.training.checkpoint import load_checkpoint, load_run, save_checkpoint
+from trainer.config import PAPER, TrainConfig, named_config
+from trainer.errors import TrainerError
+from trainer.evaluation.evaluate import evaluate_run
+from trainer.training.loop import Dist, fit
+from trainer.evaluation.metrics import case_metrics, fraction_within, hausdorff, nn_mean_distance, nodewise_error
+from trainer.evaluation.predict import Predictor
+from trainer.training.schedule import cosine_lr
 from gloo_ranks import refusal_rank, spawn_ranks
 from trainer_fixtures import make_tiny_store
 
@@ -116,7 +117,7 @@ def test_resume_does_not_lean_on_a_saved_generator_state(store, tmp_path):
     the checkpoint: under DDP rank 0 writes the checkpoint for every rank, and on CUDA its generator
     state is not another rank's. A resume with a foreign generator state (here: a checkpoint whose
     saved state was another process's) still equals the uninterrupted run, and ranks draw apart."""
-    from trainer.loop import seed_epoch
+    from trainer.training.loop import seed_epoch
 
     fit(_cfg(store), tmp_path / "once")
     fit(_cfg(store, epochs=1), tmp_path / "twice")
@@ -149,14 +150,14 @@ def test_cosine_schedule_sets_each_epochs_rate(store, tmp_path):
     assert rates == pytest.approx([cosine_lr(e, 3, 2e-3) for e in range(3)], rel=1e-6)
     assert rates[0] == pytest.approx(2e-3) and rates[0] > rates[1] > rates[2] > 2e-5
     assert cosine_lr(99, 100, 1.0) == pytest.approx(0.01, abs=3e-4)
-    with pytest.raises(TrainerError, match="lr-schedule"):
+    with pytest.raises(TrainerError, match="`lr_schedule`"):
         _cfg(store, lr_schedule="step")
 
 
 def test_checkpoints_load_without_unpickling_objects(tmp_path):
     good = tmp_path / "good.pt"
     from trainer.config import TrainConfig
-    from trainer.data import Normalisation
+    from trainer.data.normalisation import Normalisation
 
     norm = Normalisation((0.0, 0.0, -30.0), 30.0, 2.0, (4, 50, 60, -70), (14, 300, 70, -60)).as_dict()
     save_checkpoint(good, {"kind": "gnn", "train_config": TrainConfig(store="s.zarr").as_dict(), "normalisation": norm,
@@ -189,7 +190,7 @@ class _Evil:
 
 @pytest.mark.parametrize("n,world", [(7, 2), (5, 3), (1, 2), (6, 3)])
 def test_validation_shards_cover_each_case_once(n, world):
-    from trainer.loop import validation_shard
+    from trainer.training.loop import validation_shard
 
     shards = [validation_shard(list(range(n)), rank, world) for rank in range(world)]
     assert sorted(i for s in shards for i in s) == list(range(n))
@@ -219,7 +220,7 @@ def test_metrics_on_a_hand_computed_case():
     pred = true + np.array([[0.05, 0, 0], [0, 0.5, 0], [0, 0, -2.0], [0, 0, 0]])
     err = nodewise_error(pred, true)
     np.testing.assert_allclose(err, [0.05, 0.5, 2.0, 0.0])
-    assert dsc(err, 1.0) == 0.75 and dsc(err, 0.1) == 0.5
+    assert fraction_within(err, 1.0) == 0.75 and fraction_within(err, 0.1) == 0.5
     assert hausdorff(pred, true) == pytest.approx(2.0)  # every node's nearest is its own partner here
     assert nn_mean_distance(pred, true) == pytest.approx(2.55 / 4)
     m = case_metrics(pred, true)
@@ -236,7 +237,7 @@ def test_evaluate_equals_hand_computed_metrics(store, tmp_path):
     report = evaluate_run(run, store, "test", plots=False)
     state = load_run(run)
     pred = Predictor(state)
-    from trainer.data import read_store
+    from trainer.data.store_cases import read_store
 
     cases = read_store(store)
     keys = [tuple(k) for k in state["split"]["test"]]
@@ -299,7 +300,7 @@ def test_compiled_training_learns_what_eager_training_learns(store, tmp_path, mo
 def test_single_cases_go_through_one_prepared_runner_per_mesh(store, tmp_path):
     """Batch size 1 (unload, evaluate's single-case timing): one PreparedCase per mesh, made on first
     use and kept for the last few meshes; the answers are the batched ones."""
-    from trainer.data import read_store
+    from trainer.data.store_cases import read_store
 
     run = tmp_path / "run"
     fit(_cfg(store, epochs=1), run)
@@ -325,7 +326,7 @@ def test_rotation_averaged_prediction_turns_with_the_mesh(store, tmp_path):
     turn by 2π/K of the input (about the normalisation centre); K = 1 is the plain network."""
     from dataclasses import replace as dc_replace
 
-    from trainer.data import read_store
+    from trainer.data.store_cases import read_store
 
     run = tmp_path / "run"
     fit(_cfg(store, epochs=1), run)
@@ -343,7 +344,7 @@ def test_rotation_averaged_prediction_turns_with_the_mesh(store, tmp_path):
     assert np.abs(plain.predict(turned, params) - plain.predict(feat, params) @ rot.T).max() > 1e-3 * scale
     np.testing.assert_array_equal(Predictor(state, rotations=1).predict(feat, params), plain.predict(feat, params))
     assert averaged.time_ms_per_case([(feat, params, None)]) > 0
-    with pytest.raises(TrainerError, match="--rotations"):
+    with pytest.raises(TrainerError, match="`rotations`"):
         Predictor(state, rotations=0)
 
 
@@ -356,14 +357,15 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     r = evaluate_run(run, store, "test", plots=False)
     # the synthetic displacement is smooth and low-dimensional: the baseline should get close
     assert r["summary"]["md_mm"] < 0.5 and r["summary"]["cases"] > 0
-    from trainer.pca import RIDGE_GRID, PCABaseline
+    from trainer.network.pca import RIDGE_GRID, PCABaseline
     fitted = load_run(run)["best_model"]
     assert float(fitted["ridge"]) in RIDGE_GRID  # chosen on the validation cases
     older = {k: v for k, v in fitted.items() if k != "feature_map"}  # a fit without the feature map
     with pytest.raises(TrainerError, match="older feature map"):
         PCABaseline(older)
     # the ridge chosen on the validation cases is the grid's best there
-    from trainer.data import Normalisation, read_store
+    from trainer.data.store_cases import read_store
+    from trainer.data.normalisation import Normalisation
     state, cases = load_run(run), read_store(store)
     norm = Normalisation.from_dict(state["normalisation"])
     train, val = ([tuple(k) for k in state["split"][name]] for name in ("train", "val"))
@@ -382,7 +384,7 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
 def test_ray_train_resumes_a_plain_run_and_a_divergence_is_one_line(store, tmp_path, local_ray):
     """Two gloo CPU workers take a run on from the plain loop's checkpoint.pt (a run Ray Train starts
     from scratch, two workers on two nodes, checkpoints and resumes: tests/test_cluster_nodes.py)."""
-    from trainer.ray_train import serves_state_api, train_with_ray
+    from trainer.training.ray_train import serves_state_api, train_with_ray
 
     run = tmp_path / "ray_run"
     assert not serves_state_api()  # so the runs below go without the placement-group cleaner
@@ -402,7 +404,7 @@ def test_ray_train_resumes_a_plain_run_and_a_divergence_is_one_line(store, tmp_p
 def test_a_worker_that_cannot_read_the_store_refuses_in_one_line_naming_itself(tmp_path):
     """The driver's checks passed (e.g. a path on the driver's own disk) but a worker cannot read the
     store: its refusal names it, and on another machine says what every worker needs."""
-    from trainer.ray_train import worker_data
+    from trainer.training.ray_train import worker_data
 
     missing = _cfg(str(tmp_path / "gone" / "missing.zarr"))
     bundle, here = worker_data(missing, 0, "10.0.0.2", same_host=True)
@@ -420,7 +422,7 @@ def test_a_refusal_before_any_checkpoint_leaves_nothing(store, tmp_path, monkeyp
 
     from ray.train.torch import TorchTrainer
 
-    from trainer.ray_train import REFUSED, train_with_ray
+    from trainer.training.ray_train import REFUSED, train_with_ray
 
     run = tmp_path / "fresh"
     refusal = "folder /elsewhere does not exist (Ray worker 0 on 10.0.0.2)"
@@ -455,7 +457,7 @@ def test_local_ray_setup_hook_resolves_and_quietens_the_autoscaling_client():
     import logging
     import logging.config
 
-    from trainer.ray_local import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
+    from trainer.training.ray_local import LOCAL_RAY_NOISY_LOGGERS, NO_DASHBOARD_SETUP_HOOK
 
     module, name = NO_DASHBOARD_SETUP_HOOK.rsplit(".", 1)
     hook = getattr(importlib.import_module(module), name)
@@ -482,7 +484,7 @@ def test_local_ray_environment_names_ray_trains_own_flags():
     from ray.train.v2._internal.constants import (ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR,
                                                   WORKER_GROUP_START_TIMEOUT_S_ENV_VAR)
 
-    from trainer.ray_local import LOCAL_RAY_TRAIN_ENV
+    from trainer.training.ray_local import LOCAL_RAY_TRAIN_ENV
 
     assert set(LOCAL_RAY_TRAIN_ENV) == {ENABLE_PREEMPTION_WATCHER_ENV_VAR, HEALTH_CHECK_INTERVAL_S_ENV_VAR,
                                         WORKER_GROUP_START_TIMEOUT_S_ENV_VAR}
@@ -496,7 +498,7 @@ def test_the_placement_group_cleaner_is_dropped_and_nothing_else():
     from ray.train.torch import TorchTrainer
     from ray.train.v2._internal.callbacks.placement_group_callback import PlacementGroupCleanerCallback
 
-    from trainer.ray_train import without_pg_cleaner
+    from trainer.training.ray_train import without_pg_cleaner
 
     trainer = TorchTrainer(lambda: None, scaling_config=ScalingConfig(num_workers=1))
     full = [type(c) for c in trainer._create_default_callbacks()]
@@ -530,7 +532,7 @@ def test_ray_notices_are_dropped_and_warnings_kept():
     from ray.train.v2._internal.execution import storage
 
     from orchestrator.ray_session import RAY_AUTH_LOGGER, not_auth_enabled_notice
-    from trainer.ray_train import RAY_REPORT_LOGGERS, quieten_checkpoint_reports
+    from trainer.training.ray_train import RAY_REPORT_LOGGERS, quieten_checkpoint_reports
 
     assert auth.logger.name == RAY_AUTH_LOGGER and storage.logger.name in RAY_REPORT_LOGGERS
     auth_logger, report_logger = logging.getLogger(RAY_AUTH_LOGGER), storage.logger
@@ -561,7 +563,7 @@ def test_a_workers_bad_input_reaches_the_driver_by_its_type():
     from ray.train import WorkerGroupError
     from ray.train.v2._internal.exceptions import UserExceptionWithTraceback
 
-    from trainer.ray_train import worker_trainer_error
+    from trainer.training.ray_train import worker_trainer_error
 
     failures = {1: UserExceptionWithTraceback(TrainerError("rank 1's refusal"), "Traceback …"),
                 0: UserExceptionWithTraceback(RuntimeError("rank 0 crashed"), "Traceback …")}

@@ -59,7 +59,8 @@ def make_tiny_store(path, shapes: int = 4, seed: int = 0, pressures=(8.0, 12.0),
                     attrs: dict | None = None, shift_mm: float = 0.0, schema_version: int = 2) -> str:
     """Write a store with every case done (unloaded geometries moved by shift_mm along x); returns its
     location. schema_version 1: a chunk per case and array, no case_layout attribute (local paths)."""
-    from storage.store import DONE, PairStore, stats_row
+    from storage.schema import DONE
+    from storage.writer import PairStore, stats_row
 
     spec = tiny_spec(shapes, seed, pressures, stiffness)
     store = PairStore.create(str(path), {**spec.store_attrs(), **(attrs or {}),
@@ -98,7 +99,7 @@ def case_chunk(store, shape_id: int, name: str, k: int) -> tuple[Path, int, int]
     path = folder / str(k // array.shards[0]) / "0" / "0"
     per_shard = array.shards[0]
     data = path.read_bytes()
-    from storage.store import SHARD_INDEX_BYTES_PER_CASE
+    from storage.schema import SHARD_INDEX_BYTES_PER_CASE
 
     index_bytes = SHARD_INDEX_BYTES_PER_CASE * per_shard
     index = np.frombuffer(data[len(data) - index_bytes - 4:-4], dtype="<u8").reshape(per_shard, 2)

@@ -5,24 +5,19 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields, replace
 
-
-class TrainerError(ValueError):
-    """Bad input to training / evaluation / network unloading; the message is one line."""
-
-
-class TrainingDiverged(TrainerError):
-    """The training loss (or validation loss) turned non-finite: every rank stops at the same epoch."""
+from trainer.errors import TrainerError
+from trainer.data.splits import parse_split
 
 
 def check_device(device: str) -> None:
     """TrainerError unless `device` is cpu, or cuda with a CUDA device present (torch loads only then)."""
     if device not in ("cpu", "cuda"):
-        raise TrainerError(f"--device must be cpu or cuda, got {device!r}")
+        raise TrainerError(f"`device` must be cpu or cuda, got {device!r}")
     if device == "cuda":
         import torch
 
         if not torch.cuda.is_available():
-            raise TrainerError("--device cuda: no CUDA device is available here")
+            raise TrainerError("`device` cuda: no CUDA device is available here")
 
 
 # the values of ModelConfig's choice fields
@@ -60,19 +55,19 @@ class ModelConfig:
             average is what validation sees and what the checkpoint saves as the best model.
             0 = off (the paper)
     gat_kernel: how GAT layers sum over neighbours — sparse (one sparse-matrix product per layer,
-            trainer.sparse_gat; the default) | pyg (torch_geometric's GATConv). Same mathematics and
+            trainer.network.sparse_gat; the default) | pyg (torch_geometric's GATConv). Same mathematics and
             parameter names: a checkpoint loads with either
     node_features: the encoder's node input — xyz (normalised coordinates: the paper) | wall
             (xyz plus the wall coordinates ζ, base 0 … apex 1, and τ, endocardium 0 … epicardium 1,
-            trainer.data.wall_coordinates: where a node sits in the wall, which three message-passing
+            trainer.data.features.wall_coordinates: where a node sits in the wall, which three message-passing
             hops cannot tell from coordinates; they label material points, so the cycle's pass on the
             predicted unloaded mesh reuses the ED values) | wall-response (wall plus the mesh's
             linear response ũ [3]: its displacement under pressure from one linear FE solve,
-            trainer.data.linear_response_feature — how the whole shape gives, which no few-hop
+            trainer.data.features.linear_response_feature — how the whole shape gives, which no few-hop
             message passing can compute; ~45 ms per 350-node mesh, once, on top of the network's time)
     output_scale: how the decoders' output becomes a displacement — global (× one scale fitted on
             the training displacements: the paper) | load (also × the case's expected displacement
-            size exp(load_features(p̂) · a), a fitted on the labelled training cases, trainer.data
+            size exp(load_features(p̂) · a), a fitted on the labelled training cases, trainer.data.store_cases
             fit_load_scale: the decoders predict a field of unit size for every loading, so a case at
             4 mmHg and C = 300 Pa is not fitted to the noise level of one at 14 mmHg and 50 Pa)
     kind: gnn | pca (the PCA displacement baseline; the other fields are ignored)
@@ -234,7 +229,7 @@ ALIASES: dict[str, tuple[str, dict]] = {
 CONFIG_HELP = ("Base network: paper (default) | multitoken | A1 (no cycle) A2 (concat fusion) A3 (no pooling) "
                "A4 (GCN) A5 (parameters broadcast) | C0 (GATv2) C2 (GraphSAGE) C5 (GAT decoder) C6 (max pool) | "
                "R1–R5 (cycle variants) | pca | recommended (A1 + node-input response, ema 0.99, dropout 0, with "
-               "--scale-pct 8 --lr-schedule cosine). Options below change it (docs/training.md: Configurations).")
+               "`scale_pct` 8 `lr_schedule` cosine). Options below change it (docs/training.md: Configurations).")
 
 
 def _lookup(name) -> Preset | None:
@@ -254,7 +249,7 @@ def preset(name: str) -> Preset:
     """The network and training options `--config NAME` starts from (case-insensitive)."""
     found = _lookup(name)
     if found is None:
-        raise TrainerError(f"unknown --config {name!r}; choose {', '.join([*BASE_CONFIGS, *PRESETS])}")
+        raise TrainerError(f"unknown configuration {name!r}; choose {', '.join([*BASE_CONFIGS, *PRESETS])}")
     return found
 
 
@@ -290,7 +285,7 @@ def _convert(key: str, text: str, like):
     except (KeyError, ValueError):
         kind = {bool: "true or false", int: "an integer", float: "a finite number",
                 tuple: "comma-separated integers"}[type(like)]
-        raise TrainerError(f"--set {key}={text}: {key} takes {kind}") from None
+        raise TrainerError(f"set={key}={text}: {key} takes {kind}") from None
     return value
 
 
@@ -304,13 +299,13 @@ def parse_settings(items) -> tuple[dict, dict]:
         key, sep, text = str(item).partition("=")
         key = key.strip().replace("-", "_")
         if not sep or not key:
-            raise TrainerError(f"--set takes key=value, e.g. --set hidden=64; got {item!r}")
+            raise TrainerError(f"`set` takes key=value, e.g. `set` hidden=64; got {item!r}")
         if key in defaults:
             model[key] = _convert(key, text, defaults[key])
         elif key in SET_TRAIN_KEYS:
             training[key] = _convert(key, text, _TRAIN_DEFAULTS[key])
         else:
-            raise TrainerError(f"unknown --set key {key!r}; network keys: {', '.join(defaults)}; "
+            raise TrainerError(f"unknown `set` key {key!r}; network keys: {', '.join(defaults)}; "
                                f"training keys: {', '.join(SET_TRAIN_KEYS)} (the others have options of their own)")
     return model, training
 
@@ -378,10 +373,10 @@ class TrainConfig:
     model: ModelConfig = PAPER
     split: str = "shape"
     sr: float = 1.0  # supervision ratio: fraction of training cases whose label is used
-    train_fraction: float = 1.0  # fraction of the training shapes kept (learning curves; trainer.splits)
-    labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.sampling)
-    rotate_deg: float = 0.0  # augmentation: training graphs turned about the long axis by ±deg (trainer.augment)
-    scale_pct: float = 0.0  # augmentation: training graphs scaled about their base by 1 ± pct/100 (trainer.augment)
+    train_fraction: float = 1.0  # fraction of the training shapes kept (learning curves; trainer.data.splits)
+    labelled_share: float = 0.25  # SR < 1: share of each batch drawn from the labelled cases (trainer.data.sampling)
+    rotate_deg: float = 0.0  # augmentation: training graphs turned about the long axis by ±deg (trainer.data.augment)
+    scale_pct: float = 0.0  # augmentation: training graphs scaled about their base by 1 ± pct/100 (trainer.data.augment)
     seed: int = 0  # initialisation, shuffling, augmentation; and the data's subsets unless split_seed is set
     split_seed: int | None = None  # split, SR subset and training-shape subset (None: seed)
     label_seed: int | None = None  # SR subset only (None: the split seed): other labels, same test cases
@@ -390,7 +385,7 @@ class TrainConfig:
     lr: float = 1e-3
     weight_decay: float = 1e-4
     patience: int = 50  # early stopping, epochs without a better validation loss
-    lr_schedule: str = "plateau"  # plateau (ReduceLROnPlateau: the paper) | cosine (trainer.schedule)
+    lr_schedule: str = "plateau"  # plateau (ReduceLROnPlateau: the paper) | cosine (trainer.training.schedule)
     lr_patience: int = 10  # ReduceLROnPlateau
     lr_factor: float = 0.5
     bf16: bool = False  # autocast on CUDA only
@@ -398,45 +393,45 @@ class TrainConfig:
     checkpoint_every: int = 1
     num_threads: int = 0  # torch threads per process (0: leave as is)
     init_from: str | None = None  # fine-tuning: the parent checkpoint whose weights and normalisation the run starts from
-    init_from_sha256: str | None = None  # the parent's tensors digest, recorded when the run starts (trainer.finetune)
+    init_from_sha256: str | None = None  # the parent's tensors digest, recorded when the run starts (trainer.training.finetune)
 
     def __post_init__(self):
         if not 0 < self.sr <= 1:
-            raise TrainerError(f"--sr must be in (0, 1], got {self.sr}")
+            raise TrainerError(f"`sr` must be in (0, 1], got {self.sr}")
         if not 0 < self.train_fraction <= 1:
-            raise TrainerError(f"--train-fraction must be in (0, 1], got {self.train_fraction}")
+            raise TrainerError(f"`train_fraction` must be in (0, 1], got {self.train_fraction}")
         if self.epochs < 1:
-            raise TrainerError(f"--epochs must be ≥ 1, got {self.epochs}")
+            raise TrainerError(f"`epochs` must be ≥ 1, got {self.epochs}")
         if self.batch_size < 1:
-            raise TrainerError(f"--batch-size must be ≥ 1, got {self.batch_size}")
+            raise TrainerError(f"`batch_size` must be ≥ 1, got {self.batch_size}")
         if not 0 < self.lr < math.inf:
-            raise TrainerError(f"--lr must be a finite number > 0, got {self.lr}")
+            raise TrainerError(f"`lr` must be a finite number > 0, got {self.lr}")
         if self.patience < 1:
-            raise TrainerError(f"--patience must be ≥ 1, got {self.patience}")
+            raise TrainerError(f"`patience` must be ≥ 1, got {self.patience}")
         if not 0 <= self.labelled_share < 1:
-            raise TrainerError(f"--labelled-share must be in [0, 1), got {self.labelled_share}")
+            raise TrainerError(f"`labelled_share` must be in [0, 1), got {self.labelled_share}")
         if self.seed < 0:
-            raise TrainerError(f"--seed must be ≥ 0, got {self.seed}")
+            raise TrainerError(f"`seed` must be ≥ 0, got {self.seed}")
         if self.split_seed is not None and self.split_seed < 0:
-            raise TrainerError(f"--split-seed must be ≥ 0, got {self.split_seed}")
+            raise TrainerError(f"`split_seed` must be ≥ 0, got {self.split_seed}")
         if self.label_seed is not None and self.label_seed < 0:
-            raise TrainerError(f"--label-seed must be ≥ 0, got {self.label_seed}")
+            raise TrainerError(f"`label_seed` must be ≥ 0, got {self.label_seed}")
         if self.label_seed is not None and self.sr >= 1:
-            raise TrainerError("--label-seed draws the SR subset; it needs --sr below 1")
+            raise TrainerError("`label_seed` draws the SR subset; it needs `sr` below 1")
         if self.lr_schedule not in LR_SCHEDULES:
-            raise TrainerError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
+            raise TrainerError(f"`lr_schedule` must be one of {', '.join(LR_SCHEDULES)}, got {self.lr_schedule!r}")
         if not 0 <= self.rotate_deg <= 180:
-            raise TrainerError(f"--rotate-deg must be in [0, 180], got {self.rotate_deg}")
+            raise TrainerError(f"`rotate_deg` must be in [0, 180], got {self.rotate_deg}")
         if not 0 <= self.scale_pct <= 30:
-            raise TrainerError(f"--scale-pct must be in [0, 30], got {self.scale_pct}")
+            raise TrainerError(f"`scale_pct` must be in [0, 30], got {self.scale_pct}")
         if not (math.isfinite(self.weight_decay) and self.weight_decay >= 0):
             raise TrainerError(f"weight_decay must be a finite number ≥ 0, got {self.weight_decay}")
         if self.lr_patience < 0 or not 0 < self.lr_factor < 1:
             raise TrainerError(f"lr_patience must be ≥ 0 and lr_factor in (0, 1), got {self.lr_patience} and {self.lr_factor}")
         if self.init_from is not None and not str(self.init_from).strip():
-            raise TrainerError("--init-from takes a run directory or its checkpoint.pt")
+            raise TrainerError("`init_from` takes a run directory or its checkpoint.pt")
         if self.init_from is not None and self.model.kind == "pca":
-            raise TrainerError("--init-from starts a network from trained weights; the PCA baseline is fitted in one step")
+            raise TrainerError("`init_from` starts a network from trained weights; the PCA baseline is fitted in one step")
         if self.init_from_sha256 is not None and (self.init_from is None or len(self.init_from_sha256) != 64
                                                   or any(c not in "0123456789abcdef" for c in self.init_from_sha256)):
             raise TrainerError("init_from_sha256 must be the parent checkpoint's 64-digit hex digest, with init_from set")
@@ -477,8 +472,6 @@ class TrainConfig:
 
     def identity(self) -> dict:
         """What must agree for a run directory to be resumed (the rest, e.g. epochs, may change)."""
-        from .splits import parse_split  # (splits imports this module)
-
         model = {k: v for k, v in self.model.as_dict().items() if k != "gat_kernel"}  # same maths either way
         ident = {"model": model, "split": parse_split(self.split), "sr": self.sr, "seed": self.seed,
                  "split_seed": self.data_seed, "train_fraction": self.train_fraction, "rotate_deg": self.rotate_deg,

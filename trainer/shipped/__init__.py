@@ -15,8 +15,8 @@ import torch
 
 from storage.disk import file_sha256
 
-from ..checkpoint import CHECKPOINT_NAME, load_run, save_checkpoint
-from ..config import TrainerError
+from trainer.training.checkpoint import CHECKPOINT_NAME, load_run, save_checkpoint
+from trainer.errors import TrainerError
 
 HERE = Path(__file__).resolve().parent
 NETWORK = HERE / "network"
@@ -31,7 +31,7 @@ def shipped_run(folder: Path | None = None, manifest: Path | None = None) -> Pat
     SHA-256 against the manifest; TrainerError (one line) when it is missing or any byte differs."""
     folder, manifest = folder or NETWORK, manifest or MANIFEST
     if not manifest.is_file() or not (folder / CHECKPOINT_NAME).is_file():
-        raise TrainerError("this heartctl has no shipped network (its package data is missing): give --run DIR of a "
+        raise TrainerError("this heartctl has no shipped network (its package data is missing): give `run` DIR of a "
                            "network you trained, or rebuild the shipped one with scripts/build_network.sh")
     try:
         files = json.loads(manifest.read_text())["files"]
@@ -41,7 +41,7 @@ def shipped_run(folder: Path | None = None, manifest: Path | None = None) -> Pat
         path = folder / name
         if not path.is_file() or file_sha256(path) != digest:
             raise TrainerError(f"the shipped network's {name} does not match its digest in {manifest.name} (a changed "
-                               f"or missing file): reinstall heartctl, or give --run DIR")
+                               f"or missing file): reinstall heartctl, or give `run` DIR")
     return folder
 
 
@@ -85,7 +85,7 @@ def record(fields: dict, manifest: Path | None = None) -> dict:
 def half_precision_error_mm(run_dir: Path, folder: Path, items: list) -> float:
     """Largest nodal difference (mm) between the run's full-precision network and the packaged
     half-precision one on `items` ((MeshFeatures, params, key) as Predictor.predict_many takes)."""
-    from ..predict import Predictor
+    from trainer.evaluation.predict import Predictor
 
     full = Predictor.from_run(run_dir).predict_many(items)
     half = Predictor.from_run(folder).predict_many(items)

@@ -1,0 +1,105 @@
+"""`heartctl unload` in the terminal: the method run, the unloaded mesh written, and what was done
+printed in one line (with `--check`, the answer inflated again)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from .console import fail, say
+from .console import progress_of
+from .inputs import solve_budget, trainer_errors, write_mesh_file
+
+
+def print_auto_choice(choice: dict, tolerance_mm: float) -> None:
+    """`--method auto`: the trade table's choice and the error it expects."""
+    typer.echo(f"auto: {choice['label']} (p95 {choice['p95_mm']:.3f} mm, max {choice['max_mm']:.3f} mm against the "
+               f"converged solution on the trade table's {choice['nodes']}-node held-out meshes, "
+               f"{choice['time_mean_s']:.2f} s per case there; asked ≤ {tolerance_mm:g} mm)")
+
+
+def print_check(lv, unloaded, params, fidelity: str, base: str, fibres: str) -> None:
+    """`--check`: the answer inflated again; its distance from the ED mesh estimates its error."""
+    from solver.reinflate import reinflation_error
+
+    chk = reinflation_error(lv, unloaded, params, fidelity, base, fibres)
+    if not chk.ok:
+        typer.echo(f"check: the answer could not be inflated again ({chk.failed}): do not trust it", err=True)
+        return
+    typer.echo(f"check: inflated again ({fidelity}, {chk.wall_s:.1f} s), the answer lands {chk.mean_mm:.3f} mm mean / "
+               f"{chk.max_mm:.3f} mm max from the ED mesh: an estimate of its error against the {fidelity} model")
+
+
+def unload_or_fail(lv, params, plan) -> dict:
+    """app.unload.unload_mesh: an inverse FE that fails exits 1, a network's refusal 2; the
+    network's warnings as lines on stderr."""
+    from solver.forward import SolveError
+    from app.unload import unload_mesh
+
+    try:
+        result = unload_mesh(lv, params, plan)
+    except SolveError as exc:
+        fail(f"inverse solve did not converge: {exc}", code=1)
+    except trainer_errors() as exc:
+        fail(str(exc))
+    for w in result.get("warnings", ()):
+        say(f"heartctl: warning: {w}", err=True)
+    return result
+
+
+def write_unloaded(out: Path, lv, result: dict, units: str) -> None:
+    """The unloaded mesh with point data `displacement` (ED − unloaded) and, for an ensemble of
+    networks, `ensemble_spread` (a hybrid's answer is the FE's: no network spread to show)."""
+    shift = lv.nodes - result["unloaded_nodes"]
+    point_data, lengths = {"displacement": shift}, ["displacement"]
+    if result["method"] == "gnn" and result["members"] > 1:
+        point_data["ensemble_spread"] = result["spread_mm"]
+        lengths.append("ensemble_spread")
+    write_mesh_file(out, lv, result["unloaded_nodes"], point_data=point_data, units=units, length_fields=tuple(lengths))
+
+
+def print_unloaded(result: dict, lv, params, plan, out: Path) -> None:
+    """One line: how the mesh was unloaded (FE's updates and mismatch, the network's time, or the
+    hybrid's both) and the ED − unloaded displacement."""
+    d = np.linalg.norm(lv.nodes - result["unloaded_nodes"], axis=1)
+    moved = f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}"
+    inv = result.get("inverse")
+    if result["method"] == "fe":
+        typer.echo(f"unloaded at {params.label()} ({plan.fidelity}, {plan.base} base): {inv.updates} updates, "
+                   f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, "
+                   f"mismatch {inv.mismatch_mm:.2e} mm; {moved}")
+    elif result["method"] == "gnn":
+        spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
+                  f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
+                  if result["members"] > 1 else "")
+        typer.echo(f"unloaded at {params.label()} by the network {result['run']} in {result['network_ms']:.1f} ms "
+                   f"(first call with graph building{' and the linear FE response' if result['with_response'] else ''} "
+                   f"{result['first_call_ms']:.0f} ms); "
+                   f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
+    else:
+        dropped = ""
+        if result["fallback"]:
+            lost = result.get("guess_attempt_s")
+            dropped = ", guess unusable" + (f" after {lost:.1f} s of inverse FE from it" if lost is not None else "")
+        budget = f", at most {plan.max_updates} updates" if plan.max_updates is not None else ""
+        typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms{dropped}"
+                   f", then {plan.fidelity} inverse FE{budget}): {inv.updates} updates, "
+                   f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
+                   f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; {moved}")
+
+
+def unload_and_report(mesh_path: Path, lv, params, plan, choice: dict | None, request, out: Path, units: str) -> None:
+    """Run a checked unload plan on the ED mesh `lv` (auto's choice said first; the solve's memory
+    checked and its progress shown when it is long), write the unloaded mesh to `out` and say what was
+    done; with the request's check, inflate the answer again and say how far it lands."""
+    if choice is not None:
+        print_auto_choice(choice, request.tolerance_mm)
+    inverse = plan.method in ("fe", "hybrid")
+    est = solve_budget(mesh_path, lv, plan.fidelity, inverse=inverse) if inverse or request.check else None
+    with progress_of(est if inverse else None, str(mesh_path)):
+        result = unload_or_fail(lv, params, plan)
+    write_unloaded(out, lv, result, units)
+    print_unloaded(result, lv, params, plan, out)
+    if request.check and plan.method != "fe":
+        print_check(lv, result["unloaded_nodes"], params, plan.fidelity, plan.base, plan.fibres)
