@@ -523,10 +523,10 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     except store_errors() as exc:
         fail(str(exc))
     if as_json:
-        typer.echo(json_line(s))
+        typer.echo(json_line(s.as_dict()))
     else:
         print_status(s, store, verify)
-    if s.get("damaged") or s["table_damage"]:
+    if s.damaged or s.table_damage:
         raise typer.Exit(1)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import re
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -28,11 +29,51 @@ def _percentiles(values: np.ndarray) -> dict | None:
             "mean": float(values.mean())}
 
 
-def summarize(location, storage_options: dict | None = None) -> dict:
+@dataclass
+class StoreSummary:
+    """A store's progress (summarize). Counts are cases; a case whose status cannot be known (its
+    shape's arrays are not what the schema implies, or its status code is out of range) counts as
+    `unknown` and is named in `table_damage` ({"shape", "case" (None: every case of the shape),
+    "reason"}). Times in s; `writer`: the driver writing the store now ({host, pid, since}) or None;
+    `damaged`: every damaged case, when the done cases were read back (store_status with verify)."""
+
+    done: int
+    failed: int
+    pending: int
+    unknown: int
+    table_damage: list
+    total: int
+    shapes: int
+    shapes_ready: int
+    cases_per_shape: int
+    fidelity: str | None
+    seed: int | None
+    mesh_nodes: int | None
+    grid: dict
+    failure_reasons: list  # {"reason" (numbers as #), "count", "example", "cases"}, most frequent first
+    mesh_failures: dict
+    throughput_cases_per_s: float | None
+    throughput_cases_per_h: float | None
+    eta_s: float | None
+    phase_percentiles_s: dict
+    hosts: dict
+    runs: int
+    last_run: dict | None
+    writer: dict | None
+    store_bytes: int | None
+    damaged: list | None = None
+
+    def as_dict(self) -> dict:
+        """The summary as a JSON object (`damaged` only when the cases were read back)."""
+        d = asdict(self)
+        if self.damaged is None:
+            del d["damaged"]
+        return d
+
+
+def summarize(location, storage_options: dict | None = None) -> StoreSummary:
     """Counts by status, failure reasons grouped, throughput of the latest run, per-phase time
-    percentiles (s) and an ETA. A case whose status cannot be known (its shape's arrays are not what
-    the schema implies, or its status code is out of range) counts as "unknown", and is named in
-    "table_damage" ({"shape", "case" (None: every case of the shape), "reason"})."""
+    percentiles (s) and an ETA (StoreSummary)."""
     reader = PairReader(location, storage_options)
     attrs, n_shapes = reader.attrs, int(reader.attrs["grid"]["shapes"])
     counts = CaseCounts()
@@ -58,29 +99,16 @@ def summarize(location, storage_options: dict | None = None) -> dict:
     runs = attrs.get("runs", [])
     throughput, last_run = _last_run(runs, done_stats, col)
     pending = counts.pending
-    return {
-        "done": counts.done, "failed": counts.failed, "pending": pending, "unknown": counts.unknown,
-        "table_damage": table_damage,
-        "total": n_shapes * reader.n_cases,
-        "shapes": n_shapes,
-        "shapes_ready": len(ready),
-        "cases_per_shape": reader.n_cases,
-        "fidelity": attrs.get("fidelity"),
-        "seed": attrs.get("seed"),
-        "mesh_nodes": attrs.get("mesh_nodes"),
-        "grid": attrs["grid"],
-        "failure_reasons": sorted(failures.values(), key=lambda e: -e["count"]),
-        "mesh_failures": attrs.get("mesh_failures", {}),
-        "throughput_cases_per_s": throughput,
-        "throughput_cases_per_h": throughput * 3600 if throughput else None,
-        "eta_s": pending / throughput if throughput and pending else (0.0 if not pending else None),
-        "phase_percentiles_s": {k: _percentiles(v) for k, v in _phase_times(done_stats, col).items()},
-        "hosts": hosts,
-        "runs": len(runs),
-        "last_run": last_run,
-        "writer": holder(location),  # the driver writing it now ({host, pid, since}), or None
-        "store_bytes": store_bytes(location),
-    }
+    return StoreSummary(
+        done=counts.done, failed=counts.failed, pending=pending, unknown=counts.unknown, table_damage=table_damage,
+        total=n_shapes * reader.n_cases, shapes=n_shapes, shapes_ready=len(ready), cases_per_shape=reader.n_cases,
+        fidelity=attrs.get("fidelity"), seed=attrs.get("seed"), mesh_nodes=attrs.get("mesh_nodes"), grid=attrs["grid"],
+        failure_reasons=sorted(failures.values(), key=lambda e: -e["count"]),
+        mesh_failures=attrs.get("mesh_failures", {}), throughput_cases_per_s=throughput,
+        throughput_cases_per_h=throughput * 3600 if throughput else None,
+        eta_s=pending / throughput if throughput and pending else (0.0 if not pending else None),
+        phase_percentiles_s={k: _percentiles(v) for k, v in _phase_times(done_stats, col).items()},
+        hosts=hosts, runs=len(runs), last_run=last_run, writer=holder(location), store_bytes=store_bytes(location))
 
 
 def _group_failures(groups: dict, shape_id: int, status: np.ndarray, reasons: dict) -> None:
@@ -134,8 +162,8 @@ def store_bytes(location) -> int | None:
     return total
 
 
-def store_status(location: str, verify: bool = False) -> dict:
-    """summarize(location), with "damaged" ({"shape", "case", "reason"} per damaged case, case None
+def store_status(location: str, verify: bool = False) -> StoreSummary:
+    """summarize(location), with `damaged` ({"shape", "case", "reason"} per damaged case, case None
     for every case of a shape; PairReader.damaged) when `verify`, which reads every done case.
     StoreError (one line) when there is no heartctl store at `location` or it cannot be read."""
     with reading_store(location):
@@ -143,5 +171,5 @@ def store_status(location: str, verify: bool = False) -> dict:
             raise StoreError(f"no heartctl store at {location}")
         status = summarize(location)
         if verify:
-            status["damaged"] = [{"shape": s, "case": k, "reason": r} for s, k, r in PairReader(location).damaged()]
+            status.damaged = [{"shape": s, "case": k, "reason": r} for s, k, r in PairReader(location).damaged()]
     return status

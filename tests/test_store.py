@@ -94,7 +94,7 @@ def test_round_trip_and_done_only_reads(tmp_path, shape0, real_pair):
     for name in ("ed_reference", "tets", "endo", "params", "status", "stats"):
         assert root[f"shapes/0/{name}"].metadata.codecs[-1].__class__.__name__ == "Crc32cCodec", name
 
-    s = summarize(loc)
+    s = summarize(loc).as_dict()
     assert (s["done"], s["failed"], s["pending"], s["total"]) == (1, 1, 2, 4)
     assert s["failure_reasons"][0]["count"] == 1 and "step size collapsed" in s["failure_reasons"][0]["reason"]
     assert s["hosts"] == {"h1": 1}
@@ -236,7 +236,7 @@ def test_opens_by_fsspec_url(shape0):
     store.set_case(0, 1, DONE, stats_row(st))
     store.flush()
     assert PairReader(url).done_cases() == [(0, 1)]
-    assert summarize(url)["done"] == 1
+    assert summarize(url).done == 1
 
 
 def test_a_shape_meshed_later_loses_its_mesh_failure(tmp_path, shape0):
@@ -246,7 +246,7 @@ def test_a_shape_meshed_later_loses_its_mesh_failure(tmp_path, shape0):
     m = shape0["mesh"]
     store.write_shape(0, m.nodes, m.tets, m.endo, m.epi, m.base, shape0["coefficients"], shape0["info"])
     store.flush()
-    assert summarize(store.location)["mesh_failures"] == {"1": "gmsh: could not recover the boundary"}
+    assert summarize(store.location).mesh_failures == {"1": "gmsh: could not recover the boundary"}
 
 
 def test_one_writer_per_store(tmp_path, shape0):
@@ -267,7 +267,7 @@ def test_one_writer_per_store(tmp_path, shape0):
     try:
         assert other.stdout.readline().strip() == "held"
         assert holder(store.location)["pid"] == other.pid
-        assert summarize(store.location)["writer"]["pid"] == other.pid  # `status` tells running from interrupted
+        assert summarize(store.location).writer["pid"] == other.pid  # `status` tells running from interrupted
         with pytest.raises(StoreError, match=f"being written by pid {other.pid}"):
             check_request(SPEC, store.location)
         with pytest.raises(StoreError, match="being written"):
@@ -275,7 +275,7 @@ def test_one_writer_per_store(tmp_path, shape0):
     finally:
         other.kill()  # SIGKILL: no clean-up runs in the holder
         other.wait()
-    assert holder(store.location) is None and summarize(store.location)["writer"] is None
+    assert holder(store.location) is None and summarize(store.location).writer is None
     with WriterLock(store.location) as lock:
         assert lock.held and json.loads((tmp_path / "s.zarr" / LOCK_NAME).read_text())["pid"] == os.getpid()
         assert holder(store.location) is None  # this process's own lock does not refuse it

@@ -178,7 +178,7 @@ def test_status_counts_a_case_it_cannot_know(store):
     not left out of the counts."""
     _, loc = store
     status_seven(loc)
-    s = summarize(loc)
+    s = summarize(loc).as_dict()
     assert (s["done"], s["unknown"], s["done"] + s["failed"] + s["pending"] + s["unknown"]) == (3, 1, CASES)
     assert s["table_damage"] == [{"shape": 0, "case": 3, "reason": "its status code 7 is none of 0 pending, "
                                                                     "1 done, 2 failed"}]
@@ -186,12 +186,12 @@ def test_status_counts_a_case_it_cannot_know(store):
     assert res.exit_code == 1 and "status unknown 1 (25.0 %)" in res.output and "damaged: shape 0 case 3" in res.output
 
     delete_status(loc)
-    s = summarize(loc)
+    s = summarize(loc).as_dict()
     assert (s["done"], s["unknown"]) == (0, CASES) and s["table_damage"][0]["case"] is None
 
 
 def test_an_intact_store_has_no_damage(intact):
     for loc in intact.values():
         reader = PairReader(loc)
-        assert reader.damaged() == [] and summarize(loc)["table_damage"] == []
+        assert reader.damaged() == [] and summarize(loc).table_damage == []
         assert len(list(reader.iter_done())) == CASES and (reader.status(0) == DONE).all()

@@ -62,7 +62,7 @@ def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_pat
     status, stats = _stats(loc)
     assert status.tolist() == [DONE, FAILED, DONE]
     assert stats[1, COL["solve_attempts"]] == 2  # retried once with the robust setting
-    s = summarize(loc)
+    s = summarize(loc).as_dict()
     assert (s["done"], s["failed"], s["pending"]) == (2, 1, 0)
     assert s["failure_reasons"][0]["cases"] == [[0, 1]]
     assert "load" in s["failure_reasons"][0]["example"]

@@ -68,7 +68,7 @@ def _check_grown(location: str, grown: dict) -> None:
     assert reader.attrs["grid"]["shapes"] == 2 and reader.shape_ids() == [0, 1]
     run = reader.attrs["runs"][-1]
     assert (run["shapes"], run["shapes_before"], run["done"]) == (2, 1, 2) and "ended_at" in run
-    s = summarize(location)
+    s = summarize(location).as_dict()
     assert (s["shapes"], s["done"], s["pending"], s["failed"]) == (2, 4, 0, 0)
     assert run_sweep(spec(2), location, progress=False).submitted == 0  # and it resumes as any store
 

@@ -186,7 +186,7 @@ def test_mismatched_store(trained):
     (("--no-ray", "--split", "lovo:P=10"), ("no done case", "8, 12")),
     (("--split", "lovo:P=10"), ("no done case", "8, 12")),  # the Ray path: refused before Ray starts
     (("--split", "source"), ("source",)),
-    (("--no-ray", "--config", "A7"), ("--config",)),
+    (("--no-ray", "--config", "A7"), ("unknown configuration 'A7'",)),
     (("--no-ray", "--sr", "0"), ("--sr",)),
     (("--no-ray", "--epochs", "0"), ("--epochs",)),
     (("--no-ray", "--rotate-deg", "200"), ("--rotate-deg", "[0, 180]")),
