@@ -7,11 +7,12 @@ from pathlib import Path
 
 import typer
 
-from app.terminal.console import fail, json_line, usage_exception_types, mesh_progress, progress_of, say, warnings_as_lines
+from app.terminal.console import (fail, failures, json_line, mesh_progress, progress_of, say, usage_exception_types,
+                                  warnings_as_lines)
 from app.terminal.generation import (check_sweep_memory, print_nothing_to_run, print_plan, print_sweep_bench,
                                      print_sweep_report, sweep_or_fail, warn_high_pressure, warn_high_pressures)
-from app.terminal.inputs import (case_parameters, check_fibres, check_output, input_errors, read_mesh_file,
-                                 set_solver_threads, solve_budget, store_errors, trainer_errors, write_mesh_file)
+from app.terminal.inputs import (case_parameters, check_fibres, check_output, read_mesh_file, set_solver_threads,
+                                 solve_budget, write_mesh_file)
 from app.terminal.l2u import print_l2u_check
 from app.terminal.options import (Base, BaseOpt, Direction, DropoutOpt, EmaOpt, EndoOpt, EpiOpt, FibresOpt,
                                   FidelityName, FidelityOpt, GenerateOptions, LayerOpt, LearningCurveOptions,
@@ -56,12 +57,10 @@ def mesh(shape: int = typer.Option(..., "--shape", help="Shape id of the built-i
     descriptors."""
     from app.meshing import shape_mesh
 
-    try:
+    with failures():
         check_output(out)
         result = shape_mesh(shape, seed, shape_model, nodes, endo, epi, fidelity.value, progress=mesh_progress)
         write_mesh_file(out, result.lv, point_data=result.point_data, cell_data=result.cell_data, units=units.value)
-    except input_errors() as exc:
-        fail(str(exc))
     print_shape_mesh(result, out)
 
 
@@ -73,23 +72,18 @@ def solve(mesh_path: Path = typer.Argument(..., metavar="MESH", help="Unloaded (
           fibres: str = FibresOpt, threads: int = ThreadsOpt):
     """Forward inflation of an unloaded mesh to the ED pressure."""
     set_solver_threads(threads)
-    from solver.forward import SolveError
     from solver.lv import forward_solve
 
-    try:
+    with failures():
         params = case_parameters(pressure, stiffness, endo, epi)
         check_fibres(fibres)
         check_output(out, mesh_path)
         lv = read_mesh_file(mesh_path, units.value)
-    except input_errors() as exc:
-        fail(str(exc))
     warn_high_pressure(pressure)
     est = solve_budget(mesh_path, lv, fidelity.value, inverse=False)
-    try:
+    with failures(solve="forward solve did not converge"):
         with progress_of(est, str(mesh_path)):
             result = forward_solve(lv, params, fidelity.value, base.value, fibres=fibres)
-    except SolveError as exc:
-        fail(f"forward solve did not converge: {exc}", code=1)
     write_mesh_file(out, lv, result.loaded_nodes, point_data={"displacement": result.displacement},
                     units=units.value, length_fields=("displacement",))
     print_inflated(result, params, fidelity.value, base.value, out)
@@ -115,7 +109,7 @@ def unload(ctx: typer.Context, mesh_path: Path = UnloadOptions.mesh_path, pressu
     set_solver_threads(threads)
     from app.unload import UnloadRequest
 
-    try:
+    with failures():
         params = case_parameters(pressure, stiffness, endo, epi)
         check_output(out, mesh_path)
         given = frozenset(n for n in ("fidelity", "tol_mm", "base", "fibres") if _given(ctx, n))
@@ -124,8 +118,6 @@ def unload(ctx: typer.Context, mesh_path: Path = UnloadOptions.mesh_path, pressu
                                 given=given)
         lv = read_mesh_file(mesh_path, units.value)
         plan, choice = request.plan(lv.n_nodes)
-    except input_errors() as exc:
-        fail(str(exc))
     warn_high_pressure(pressure)
     unload_and_report(mesh_path, lv, params, plan, choice, request, out, units.value)
 
@@ -158,10 +150,8 @@ def bench_solver(fidelity: list[FidelityName] = typer.Option(None, "--fidelity",
     from bench.solver_speed import run_solver_benchmark
 
     presets = [f.value for f in fidelity] if fidelity else ["fast", "accurate"]
-    try:
+    with failures():
         rows = run_solver_benchmark(presets, nodes, shape)
-    except input_errors() as exc:
-        fail(str(exc))
     print_solver_bench(rows, shape, nodes, threads, as_json)
 
 
@@ -180,7 +170,7 @@ def bench_corners(fidelity: list[FidelityName] = typer.Option(None, "--fidelity"
     from bench.stability import EXTENDED_BOX, PAPER_BOX, format_row, run_stability
 
     presets = [f.value for f in fidelity] if fidelity else ["fast", "accurate"]
-    try:
+    with failures():
         check_fibres(fibres)
         if "reference" in presets:
             raise ValueError("--fidelity reference is not a stability target (it is accurate on a refined mesh)")
@@ -188,8 +178,6 @@ def bench_corners(fidelity: list[FidelityName] = typer.Option(None, "--fidelity"
         echo = (lambda r: typer.echo(json_line(r))) if as_json else (lambda r: typer.echo(format_row(r)))
         rows = [row for box in ((PAPER_BOX, EXTENDED_BOX) if extended else (PAPER_BOX,))
                 for row in run_stability(presets, box, nodes, base.value, fibres, progress=echo)]
-    except input_errors() as exc:
-        fail(str(exc))
     print_corners(rows, presets, out, report_header("corners", f"; {base.value} base, {fibres} fibres, ~{nodes}-node meshes."))
 
 
@@ -210,15 +198,13 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
     from bench.convergence import (ConvergenceSpec, parse_hierarchies, parse_quad_degrees, run_convergence,
                                     write_report)
 
-    try:
+    with failures():
         check_fibres(fibres)
         spec = ConvergenceSpec(tuple(s.strip() for s in shapes.split(",") if s.strip()),
                                tuple(c.strip() for c in cases.split(",") if c.strip()), parse_hierarchies(meshes),
                                base=base.value, fibres=fibres,
                                quad_degrees=parse_quad_degrees(quadrature)).validate()
         result = run_convergence(spec, out / "solves", progress=typer.echo)
-    except input_errors() as exc:
-        fail(str(exc))
     details = f", solver sha256:{result['solver']}; base {base.value}, {fibres} fibres."
     print_convergence(result, write_report(result, out, report_header("convergence", details, threads)))
 
@@ -245,12 +231,10 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
     from bench.trade import TradeSpec, run_trade, write_report
 
     out = out or run[0] / "trade"
-    try:
+    with failures():
         spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes, network_only=network_only,
                          first_shape=first_shape, seed=seed).validate()
         result = run_trade(spec, out / "solves", progress=typer.echo)
-    except trainer_errors() as exc:
-        fail(str(exc))
     print_trade(result, write_report(result, out, report_header("trade", "", threads)))
 
 
@@ -262,13 +246,10 @@ def import_l2u_cmd(folder: Path = typer.Argument(..., metavar="DIR", help="Folde
                    store: str = typer.Option(..., "--store", help="New Zarr store to write.")):
     """Import the original paper's public FE pairs (VTU, cm) as done cases of a new store (mm)."""
     from storage.l2u import import_l2u
-    from storage.location import StoreError
 
-    try:
+    with failures():
         with warnings_as_lines():
             report = import_l2u(folder, store)
-    except (StoreError, ValueError, FileNotFoundError) as exc:
-        fail(str(exc))
     typer.echo(f"{store}: imported {report.imported} pairs of {report.shapes} shapes "
                f"({report.found_files} files, {report.pairs} matched pairs, {report.n_skipped} skipped)")
     for name, reason in report.skipped_files():
@@ -289,13 +270,10 @@ def bench_l2u(store: str = typer.Option(..., "--store", help="A store written by
     (--direction inverse: unload their ED meshes; mismatch to their unloaded meshes).
     The defaults follow their pipeline (heartFEM's base, their C convention and fibre rule, degree 4)."""
     from orchestrator.l2u_check import run_l2u_check
-    from storage.location import StoreError
 
-    try:
+    with failures():
         result = run_l2u_check(store, fidelity.value, base.value, limit, stiffness_factor, fibres, quad_degree,
                                direction.value)
-    except (StoreError, ValueError) as exc:
-        fail(str(exc))
     print_l2u_check(result, direction, as_json)
 
 
@@ -322,7 +300,7 @@ def train(store: str = TrainOptions.store, run_dir: Path = TrainOptions.run_dir,
     from orchestrator.ray_session import RayAddress
     from trainer.training.launch import Placement, prepare_training
 
-    try:
+    with failures():
         where = RayAddress(address, connect_timeout)
         placement = Placement(gpus=gpus, workers=workers, local=local, no_ray=no_ray, device=device, address=address,
                               max_failures=max_failures)
@@ -334,8 +312,6 @@ def train(store: str = TrainOptions.store, run_dir: Path = TrainOptions.run_dir,
                                     split_seed=split_seed, label_seed=label_seed, rotate_deg=rotate_deg, epochs=epochs,
                                     batch_size=batch_size, lr=lr, patience=patience, bf16=bf16, compile=compile_model,
                                     init_from=None if init_from is None else str(init_from)))
-    except trainer_errors() as exc:
-        fail(str(exc))
     if placement.in_process(cfg):
         summary = run_training_here(cfg, run_dir.resolve(), placement)
     else:
@@ -360,11 +336,9 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
     against the store's own labels and, with --reference, against the converged solution."""
     from trainer.evaluation.evaluate import evaluate_run
 
-    try:
+    with failures():
         report = evaluate_run(run[0], store, split, device, out, plots, rotations=rotations, members=run[1:],
                               reference=reference)
-    except trainer_errors() as exc:
-        fail(str(exc))
     print_evaluation(report, split, store, as_json)
 
 
@@ -388,13 +362,11 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
     """Inference ms per case at batch 1, 32, 128 and training graphs/s (plain PyTorch, no Ray)."""
     from bench.network_speed import ModelBench
 
-    try:
+    with failures():
         with warnings_as_lines():
             r = ModelBench(device=device, nodes=nodes, config=config, batches=batches, train_batch=train_batch, bf16=bf16,
                            threads=threads, gat_kernel=gat_kernel, mesh=mesh, mesh_units=units.value,
                            compile_model=compile_model, profile=profile, min_seconds=min_seconds).run()
-    except trainer_errors() as exc:
-        fail(str(exc))
     print_model_bench(r, as_json)
 
 
@@ -418,12 +390,10 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
     from bench.ablation import ablation_study
 
-    try:
+    with failures():
         result = ablation_study(store, root, configs, seeds, device, lambda line: say(line, err=True),
                                 split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size,
                                 rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
-    except trainer_errors() as exc:
-        fail(str(exc))
     if as_json:
         typer.echo(json_line(result))
     elif "seeds" in result:
@@ -449,14 +419,12 @@ def bench_learning_curve_cmd(store: str = LearningCurveOptions.store, root: Path
     test shapes, fit error ∝ pairs^(−b) and extrapolate the pairs a target would take."""
     from bench.learning_curve import learning_curve_config, parse_fractions, run_learning_curve
 
-    try:
+    with failures():
         values = parse_fractions(fractions)
         base, targets = learning_curve_config(store, root, config, split, device, dict(
             sr=sr, seed=seed, epochs=epochs, batch_size=batch_size, rotate_deg=rotate_deg, scale_pct=scale_pct,
             lr_schedule=lr_schedule), {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc})
         result = run_learning_curve(base, values, root, targets, device, lambda line: say(line, err=True))
-    except trainer_errors() as exc:
-        fail(str(exc))
     if as_json:
         typer.echo(json_line(result))
         return
@@ -486,9 +454,8 @@ def generate(shapes: int = GenerateOptions.shapes, store: str = GenerateOptions.
     Rerunning on the same store resumes it; a larger --shapes grows it."""
     from orchestrator.ray_session import RayAddress
     from orchestrator.sweep_request import SweepRequest, resolve_sweep
-    from solver.mesh import MeshError
 
-    try:
+    with failures():
         request = SweepRequest(store=store, shapes=shapes, pressures=pressures, stiffness=stiffness, endo=endo, epi=epi,
                                fidelity=fidelity, base=base, fibres=fibres, seed=seed, nodes=nodes, meshes=meshes,
                                mesh_units=None if units is None else units.value, local=local, address=address,
@@ -497,8 +464,6 @@ def generate(shapes: int = GenerateOptions.shapes, store: str = GenerateOptions.
         where = RayAddress(address, connect_timeout)
         with warnings_as_lines():
             sweep = resolve_sweep(request)
-    except (*store_errors(), MeshError) as exc:
-        fail(str(exc))
     warn_high_pressures(sweep.high_pressures())
     if not dry_run and address is None:
         check_sweep_memory(sweep)
@@ -518,10 +483,8 @@ def status(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     """Progress of a store: counts by status, failure reasons, throughput, per-phase times, ETA."""
     from storage.status import store_status
 
-    try:
+    with failures():
         s = store_status(store, verify)
-    except store_errors() as exc:
-        fail(str(exc))
     if as_json:
         typer.echo(json_line(s.as_dict()))
     else:
@@ -539,11 +502,9 @@ def export(store: str = typer.Option(..., "--store", help="Zarr store: a path or
     """Write one done case as a mesh (points = unloaded geometry, point data `displacement` = loaded − unloaded)."""
     from storage.export import export_case
 
-    try:
+    with failures():
         check_output(out)
         params = export_case(store, shape, case, out, geometry)
-    except store_errors() as exc:
-        fail(str(exc))
     print_exported(shape, case, params, out)
 
 
@@ -555,10 +516,8 @@ def bench_sweep(cases: int = typer.Option(8, "--cases", help="Pairs per run (one
     """Sweep throughput on 1 and 2 (…) CPUs, parallel efficiency, Ray overhead per task vs a fast pair's solve."""
     from bench.sweep_speed import parse_cpu_counts, run_sweep_benchmark
 
-    try:
+    with failures():
         result = run_sweep_benchmark(cases, nodes, parse_cpu_counts(cpus))
-    except ValueError as exc:
-        fail(str(exc))
     print_sweep_bench(result, as_json)
 
 

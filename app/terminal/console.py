@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import re
+from contextlib import contextmanager
 
 import typer
 
@@ -41,6 +42,45 @@ def fail(message: str, code: int = 2) -> None:
     """One line on stderr (its parameters as flags), then exit."""
     typer.echo(f"heartctl: error: {flags_in(message)}", err=True)
     raise typer.Exit(code)
+
+
+# The one table from an exception to the exit status, by the name of its class or of the nearest base
+# class listed (the classes live in packages the command line imports late): bad input 2, a computation
+# or a store that failed 1, an interruption 130.
+EXIT_CODES = {
+    "SolveError": 1, "StoreFullError": 1, "StoreLostError": 1, "DiskFullError": 1,
+    "KeyboardInterrupt": 130,
+    "MeshError": 2, "ParameterError": 2, "StoreError": 2, "TrainerError": 2, "RayConnectError": 2,
+    "RayStartError": 2, "ValueError": 2, "FileNotFoundError": 2, "IsADirectoryError": 2, "NotADirectoryError": 2,
+}
+
+
+def exit_code(exc: BaseException) -> int | None:
+    """The exit status EXIT_CODES gives an exception, or None when it lists none of its classes."""
+    return next((EXIT_CODES[c.__name__] for c in type(exc).__mro__ if c.__name__ in EXIT_CODES), None)
+
+
+@contextmanager
+def failures(solve: str | None = None, interrupted: str | None = None, other: str | None = None):
+    """Within the block, an exception EXIT_CODES lists prints one line and exits with its status. A
+    solve that fails says `solve: reason`; an interruption says `interrupted` (without it, it passes
+    on: `main` reports it); with `other`, any other exception is a failure too (`other: its first
+    line`, exit 1). Anything else passes on unchanged."""
+    try:
+        yield
+    except typer.Exit:
+        raise
+    except BaseException as exc:
+        code = exit_code(exc)
+        if code == 130 and interrupted is not None:
+            fail(interrupted, code=130)
+        if code is None and other is not None and isinstance(exc, Exception):
+            text = str(exc).strip()
+            fail(f"{other}: {text.splitlines()[0] if text else type(exc).__name__}", code=1)
+        if code is None or code == 130:
+            raise
+        is_solve = any(c.__name__ == "SolveError" for c in type(exc).__mro__)
+        fail(f"{solve}: {exc}" if is_solve and solve else str(exc), code=code)
 
 
 SLOW_SOLVE_S = 30.0  # a solve expected to take longer shows its load steps or inverse updates on stderr

@@ -7,8 +7,7 @@ import os
 import typer
 
 from . import console
-from .console import fail, json_line, size_text, stop_on_sigterm
-from .inputs import store_errors
+from .console import fail, failures, json_line, size_text, stop_on_sigterm
 
 
 def check_sweep_memory(sweep) -> None:
@@ -51,23 +50,15 @@ def sweep_or_fail(sweep, where, warm_start: bool, retry_damaged: bool, progress:
     """orchestrator.sweep.run_sweep within a ray_session: Ray that will not start and store errors
     exit 2, a full disk or a lost object store exits 1, Ctrl-C (or SIGTERM) 130, each in one line;
     done cases are kept."""
-    from orchestrator.ray_session import RayConnectError, RayStartError, ray_session, sweep_ray_options
-    from orchestrator.sweep import StoreFullError, StoreLostError, run_sweep
+    from orchestrator.ray_session import ray_session, sweep_ray_options
+    from orchestrator.sweep import run_sweep
 
     req = sweep.request
-    try:
+    with failures(interrupted="interrupted; done cases are kept, rerun the same command to resume"):
         with ray_session(where, **sweep_ray_options(req.num_cpus, req.local)):
             stop_on_sigterm()  # after ray.init, whose driver installs its own handler
             return run_sweep(sweep.spec, req.store, max_in_flight=req.max_in_flight, retry_failed=req.retry_failed,
                              progress=progress, warm_start=warm_start, retry_damaged=retry_damaged)
-    except (RayConnectError, RayStartError) as exc:
-        fail(str(exc))
-    except store_errors() as exc:
-        fail(str(exc))
-    except (StoreFullError, StoreLostError) as exc:  # not bad input: exit 1, like a solve that fails
-        fail(str(exc), code=1)
-    except KeyboardInterrupt:
-        fail("interrupted; done cases are kept, rerun the same command to resume", code=130)
 
 
 def print_nothing_to_run(sweep, as_json: bool) -> None:

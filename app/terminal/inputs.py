@@ -16,13 +16,6 @@ def check_fibres(rule: str) -> None:
     check_fibre_rule(rule)
 
 
-def input_errors():
-    from solver.mesh import MeshError
-    from solver.parameters import ParameterError
-
-    return (MeshError, ParameterError, ValueError, FileNotFoundError, IsADirectoryError)
-
-
 def set_solver_threads(threads: int | None) -> None:
     """Threads for the sparse solver and BLAS (set before they load); None leaves the environment's;
     exit 2 below 1."""
@@ -85,14 +78,3 @@ def solve_budget(mesh_path: Path, lv, preset: str, inverse: bool):
     return est
 
 
-def trainer_errors():
-    from storage.location import StoreError
-    from trainer.errors import TrainerError
-
-    return (TrainerError, StoreError, ValueError, FileNotFoundError, NotADirectoryError)
-
-
-def store_errors():
-    from storage.location import StoreError
-
-    return (StoreError, ValueError, FileNotFoundError, NotADirectoryError)

@@ -6,52 +6,34 @@ from pathlib import Path
 
 import typer
 
-from .console import fail, json_line, say, stop_on_sigterm
-from .inputs import trainer_errors
+from .console import failures, json_line, say, stop_on_sigterm
+
+RESUME_TRAINING = "interrupted; rerun the same command to resume from the last checkpoint"
 
 
 def run_training_here(cfg, run_dir: Path, placement) -> dict:
     """trainer.training.launch.train_in_process, its refusals and Ctrl-C (or SIGTERM) as one line."""
     from trainer.training.launch import train_in_process
 
-    from trainer.training.checkpoint import DiskFullError
-
     stop_on_sigterm()
-    try:
+    with failures(interrupted=RESUME_TRAINING):
         return train_in_process(cfg, run_dir, placement, log=lambda line: say(line, err=True))
-    except trainer_errors() as exc:
-        fail(str(exc))
-    except DiskFullError as exc:  # a failure, not bad input: exit 1
-        fail(str(exc), code=1)
-    except KeyboardInterrupt:
-        fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
 
 
 def run_training_on_ray(cfg, run_dir: Path, placement, where) -> dict:
     """Ray Train within a ray_session (a local Ray, or the cluster joined): refusals, Ray that will not
     start and Ctrl-C exit 2 (130) in one line, a training that fails exits 1."""
-    from orchestrator.ray_session import RayConnectError, RayStartError, ray_session
-    from trainer.training.checkpoint import DiskFullError
+    from orchestrator.ray_session import ray_session
     from trainer.training.ray_local import local_ray_options
     from trainer.training.ray_train import check_ray_resources, train_with_ray
 
     gpus, workers = placement.gpus, placement.workers
-    try:
+    # Ray's TrainingFailedError and the like are not bad input: "training failed: …", exit 1
+    with failures(interrupted=RESUME_TRAINING, other="training failed"):
         with ray_session(where, **local_ray_options(workers if placement.local else None)):
             check_ray_resources(gpus, workers, where.address)
             stop_on_sigterm()  # after ray.init, whose driver installs its own handler
             summary = train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=placement.max_failures)
-    except (RayConnectError, RayStartError) as exc:
-        fail(str(exc))
-    except trainer_errors() as exc:
-        fail(str(exc))
-    except KeyboardInterrupt:
-        fail("interrupted; rerun the same command to resume from the last checkpoint", code=130)
-    except DiskFullError as exc:
-        fail(str(exc), code=1)
-    except Exception as exc:  # Ray's TrainingFailedError and the like: not bad input
-        text = str(exc).strip()
-        fail(f"training failed: {text.splitlines()[0] if text else type(exc).__name__}", code=1)
     summary["mode"] = f"Ray Train, {summary['workers']} {'GPU' if gpus else 'CPU'} worker(s), {summary['backend']}"
     return summary
 

@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from .console import fail, say
-from .console import progress_of
-from .inputs import solve_budget, trainer_errors, write_mesh_file
+from .console import failures, progress_of, say
+from .inputs import solve_budget, write_mesh_file
 
 
 def print_auto_choice(choice: dict, tolerance_mm: float) -> None:
@@ -34,15 +33,10 @@ def print_check(lv, unloaded, params, fidelity: str, base: str, fibres: str) -> 
 def unload_or_fail(lv, params, plan) -> dict:
     """app.unload.unload_mesh: an inverse FE that fails exits 1, a network's refusal 2; the
     network's warnings as lines on stderr."""
-    from solver.forward import SolveError
     from app.unload import unload_mesh
 
-    try:
+    with failures(solve="inverse solve did not converge"):
         result = unload_mesh(lv, params, plan)
-    except SolveError as exc:
-        fail(f"inverse solve did not converge: {exc}", code=1)
-    except trainer_errors() as exc:
-        fail(str(exc))
     for w in result.get("warnings", ()):
         say(f"heartctl: warning: {w}", err=True)
     return result
