@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import asdict, dataclass
 
 from storage.reader import PairReader
 from storage.schema import CHUNK_PER_CASE, case_layout, encoded_case_bytes
@@ -63,39 +64,83 @@ def calibrate(spec: SweepSpec, warm_start: bool = True) -> dict:
     return out
 
 
+@dataclass
+class PlanCost:
+    """A plan's price from its calibration solve (`calibrate`): core-hours of what is left to run, wall
+    time at `cores`, the cores (and cluster.yaml worker nodes) that finish it in an hour, the store's
+    size, the paper's full sweep at this fidelity and mesh size, and for `fast` the goal it meets."""
+
+    calibration: dict
+    core_hours: float
+    cores: int | None
+    wall_hours_at_cores: float | None
+    cores_for_one_hour: int
+    worker_nodes_for_one_hour: int
+    store_bytes_estimate: int
+    paper_full_sweep_core_hours: float
+    paper_full_sweep_store_bytes: int
+    fast_goal: dict | None = None
+
+
+@dataclass
+class SweepPlan:
+    """What `generate --dry-run` reports: the grid, what a resume leaves to run, and with a calibration
+    its cost (PlanCost)."""
+
+    store: str
+    resume: bool
+    shapes: int
+    grows_from: int | None
+    shapes_to_mesh: int
+    cases_per_shape: int
+    cases: int
+    done: int
+    failed: int
+    to_run: int
+    fidelity: str
+    seed: int
+    mesh_nodes: int
+    grid: dict
+    store_objects: int
+    cost: PlanCost | None = None
+
+    def as_dict(self) -> dict:
+        """The plan as one flat JSON object (the cost's keys beside the grid's; none left out but an
+        unknown wall time and a missing goal)."""
+        d = {k: v for k, v in asdict(self).items() if k != "cost"}
+        if self.cost is not None:
+            d.update({k: v for k, v in asdict(self.cost).items()
+                      if v is not None or k not in ("cores", "wall_hours_at_cores", "fast_goal")})
+        return d
+
+
 def make_plan(spec: SweepSpec, location: str, store_attrs: dict | None, cores: int | None = None,
-              calibration: bool = True, warm_start: bool = True, retry_failed: bool = False) -> dict:
+              calibration: bool = True, warm_start: bool = True, retry_failed: bool = False) -> SweepPlan:
+    """The plan of a sweep of `spec` into `location` (store_attrs: its root attributes, None for a new
+    store); with `calibration`, priced by a calibration solve of shape 0 on this machine."""
     counts = existing_counts(location) if store_attrs is not None else {"done": 0, "failed": 0, "meshed": 0}
     remaining = spec.n_cases - counts["done"] - (0 if retry_failed else counts["failed"])
     to_mesh = spec.shapes - counts["meshed"]
-    plan = {
-        "store": str(location), "resume": store_attrs is not None, "shapes": spec.shapes,
-        "grows_from": spec.grows(store_attrs) if store_attrs is not None else None, "shapes_to_mesh": to_mesh,
-        "cases_per_shape": spec.cases_per_shape, "cases": spec.n_cases, "done": counts["done"],
-        "failed": counts["failed"], "to_run": remaining, "fidelity": spec.fidelity, "seed": spec.seed,
-        "mesh_nodes": spec.nodes, "grid": spec.grid_attrs(),
-        "store_objects": store_objects(spec.shapes, spec.cases_per_shape,
-                                       store_attrs is None or case_layout(store_attrs) != CHUNK_PER_CASE),
-    }
+    plan = SweepPlan(str(location), store_attrs is not None, spec.shapes,
+                     spec.grows(store_attrs) if store_attrs is not None else None, to_mesh, spec.cases_per_shape,
+                     spec.n_cases, counts["done"], counts["failed"], remaining, spec.fidelity, spec.seed, spec.nodes,
+                     spec.grid_attrs(), store_objects(spec.shapes, spec.cases_per_shape,
+                                                      store_attrs is None or case_layout(store_attrs) != CHUNK_PER_CASE))
     if calibration:
-        cal = calibrate(spec, warm_start)
-        plan["calibration"] = cal
-        core_s = remaining * cal["pair_s"] + to_mesh * cal["mesh_s"]
-        plan["core_hours"] = core_s / 3600
-        if cores:
-            plan["cores"] = cores
-            plan["wall_hours_at_cores"] = core_s / 3600 / cores
-        plan["cores_for_one_hour"] = max(1, math.ceil(core_s / 3600))
-        plan["worker_nodes_for_one_hour"] = math.ceil(plan["cores_for_one_hour"] / WORKER_VCPUS)
-        plan["store_bytes_estimate"] = int(spec.n_cases * cal["case_bytes"]
-                                           + spec.shapes * cal["nodes"] * 3 * 8 * 1.2)
-        full = PAPER_FULL_CASES * cal["pair_s"] / 3600
-        plan["paper_full_sweep_core_hours"] = full
-        plan["paper_full_sweep_store_bytes"] = int(PAPER_FULL_CASES * cal["case_bytes"])
-        if spec.fidelity == "fast":
-            plan["fast_goal"] = {"core_hours_goal": FAST_GOAL_CORE_HOURS, "pair_s_goal": 1.5,
-                                 "meets": bool(full <= FAST_GOAL_CORE_HOURS)}
+        plan.cost = _cost(spec, calibrate(spec, warm_start), remaining, to_mesh, cores)
     return plan
+
+
+def _cost(spec: SweepSpec, cal: dict, remaining: int, to_mesh: int, cores: int | None) -> PlanCost:
+    core_s = remaining * cal["pair_s"] + to_mesh * cal["mesh_s"]
+    one_hour = max(1, math.ceil(core_s / 3600))
+    full = PAPER_FULL_CASES * cal["pair_s"] / 3600
+    goal = ({"core_hours_goal": FAST_GOAL_CORE_HOURS, "pair_s_goal": 1.5, "meets": bool(full <= FAST_GOAL_CORE_HOURS)}
+            if spec.fidelity == "fast" else None)
+    return PlanCost(cal, core_s / 3600, cores or None, core_s / 3600 / cores if cores else None, one_hour,
+                    math.ceil(one_hour / WORKER_VCPUS),
+                    int(spec.n_cases * cal["case_bytes"] + spec.shapes * cal["nodes"] * 3 * 8 * 1.2), full,
+                    int(PAPER_FULL_CASES * cal["case_bytes"]), goal)
 
 
 def cluster_cores() -> int:

@@ -78,7 +78,7 @@ class ResolvedSweep:
         """Whether the store holds every case already (damage is found only by reading every case, in the sweep)."""
         return self.left is not None and not retry_damaged and self.left["to_run"] == 0
 
-    def plan(self, warm_start: bool) -> dict:
+    def plan(self, warm_start: bool):
         """The dry run's plan: cases, a calibration solve's timing, core-hours and the store's size."""
         from .plan import cluster_cores, make_plan
 

@@ -78,8 +78,8 @@ def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_pat
     from orchestrator.plan import make_plan
 
     attrs = inspect_store(loc)
-    assert make_plan(sp, loc, attrs, calibration=False)["to_run"] == 0
-    assert make_plan(sp, loc, attrs, calibration=False, retry_failed=True)["to_run"] == 1  # the dry run agrees
+    assert make_plan(sp, loc, attrs, calibration=False).to_run == 0
+    assert make_plan(sp, loc, attrs, calibration=False, retry_failed=True).to_run == 1  # the dry run agrees
     rep3 = run_sweep(sp, loc, progress=False, retry_failed=True)
     assert rep3.submitted == 1 and rep3.records == [(0, 1, FAILED)]
     assert rep3.failed_now == 1  # the store's one failed case, not the retried one counted twice

@@ -83,7 +83,7 @@ def test_a_larger_shapes_grows_the_store_and_keeps_its_done_cases(ray_cluster, t
     # a dry run of a further growth counts the added shape's cases and its meshing
     attrs = inspect_store(loc)
     plan = make_plan(spec(3), loc, attrs, calibration=False)
-    assert (plan["cases"], plan["done"], plan["to_run"], plan["grows_from"], plan["shapes_to_mesh"]) == (6, 4, 2, 2, 1)
+    assert (plan.cases, plan.done, plan.to_run, plan.grows_from, plan.shapes_to_mesh) == (6, 4, 2, 2, 1)
     from cli import app
 
     res = CliRunner().invoke(app, ["generate", "--store", loc, "--dry-run", "--shapes", "3"] + ARGS)

@@ -111,40 +111,44 @@ def run_state_text(writer: dict | None, object_store: bool) -> str:
     return ", running or interrupted" if object_store else ", interrupted"
 
 
-def print_plan(plan: dict, as_json: bool) -> None:
-    """A dry run's plan: strict JSON, or the grid, counts, calibration, estimates and the paper's sweep."""
+def print_plan(plan, as_json: bool) -> None:
+    """A dry run's plan (orchestrator.plan.SweepPlan): strict JSON, or the grid, counts, calibration,
+    estimates and the paper's sweep."""
     if as_json:
-        typer.echo(json_line(plan))
+        typer.echo(json_line(plan.as_dict()))
         return
-    g = plan["grid"]
+    g = plan.grid
     axes = " × ".join(f"{len(g[a])} {n}" for a, n in (("pressure_mmhg", "P"), ("stiffness_pa", "C"),
                                                       ("helix_endo_deg", "θendo"), ("helix_epi_deg", "θepi")))
-    how = ("new store" if not plan["resume"] else "resume" if plan.get("grows_from") is None else
-           f"resume, growing the store from {plan['grows_from']} shapes")
-    typer.echo(f"plan for {plan['store']} ({how}): {plan['shapes']} shapes × "
-               f"{axes} = {plan['cases']} cases; {plan['done']} done, {plan['failed']} failed, {plan['to_run']} to run")
-    typer.echo(f"fidelity {plan['fidelity']}, seed {plan['seed']}, ~{plan['mesh_nodes']} nodes per mesh")
-    cal = plan.get("calibration")
-    if cal:
-        p = cal["params"]
-        status = "ok" if cal["ok"] else f"FAILED: {cal['reason']}"
-        typer.echo(f"calibration: shape 0 ({cal['nodes']} nodes) meshed in {cal['mesh_s']:.1f} s; one pair at "
-                   f"P={p[0]:g} mmHg, C={p[1]:g} Pa, θ={p[2]:g}/{p[3]:g}° took {cal['cold_pair_s']:.2f} s on 1 core ({status})"
-                   + (f", the next pressure warm-started from it {cal['warm_pair_s']:.2f} s: "
-                      f"{cal['pair_s']:.2f} s a pair over a pressure chain" if "warm_pair_s" in cal else ""))
-        typer.echo(f"estimate: {plan['core_hours']:.2f} core-hours"
-                   + (f", {plan['wall_hours_at_cores'] * 60:.1f} min wall on {plan['cores']} cores" if plan.get("cores") else "")
-                   + f"; store ≈ {plan['store_bytes_estimate'] / 1e6:.0f} MB ({cal['case_bytes'] / 1e3:.1f} kB per case), "
-                   f"{plan['store_objects']:,} objects")
-        typer.echo(f"to finish in one hour: {plan['cores_for_one_hour']:,} cores, e.g. "
-                   f"{plan['worker_nodes_for_one_hour']:,} worker nodes of 32 vCPUs (cluster.yaml's c7i.8xlarge)")
-        full = plan["paper_full_sweep_core_hours"]
-        line = (f"full paper sweep (19,440 pairs) at this fidelity and mesh size: {full:.1f} core-hours, "
-                f"{full * 60 / 64:.0f} min on 64 cores, store ≈ {plan['paper_full_sweep_store_bytes'] / 1e9:.2f} GB")
-        if "fast_goal" in plan:
-            line += (f"; goal ≤ 8 core-hours (≤ 1.5 s a pair): "
-                     f"{'met' if plan['fast_goal']['meets'] else 'NOT met'} ({cal['pair_s']:.2f} s a pair)")
-        typer.echo(line)
+    how = ("new store" if not plan.resume else "resume" if plan.grows_from is None else
+           f"resume, growing the store from {plan.grows_from} shapes")
+    typer.echo(f"plan for {plan.store} ({how}): {plan.shapes} shapes × "
+               f"{axes} = {plan.cases} cases; {plan.done} done, {plan.failed} failed, {plan.to_run} to run")
+    typer.echo(f"fidelity {plan.fidelity}, seed {plan.seed}, ~{plan.mesh_nodes} nodes per mesh")
+    if plan.cost is not None:
+        _print_cost(plan.cost, plan.store_objects)
+
+
+def _print_cost(cost, store_objects: int) -> None:
+    cal, p = cost.calibration, cost.calibration["params"]
+    status = "ok" if cal["ok"] else f"FAILED: {cal['reason']}"
+    typer.echo(f"calibration: shape 0 ({cal['nodes']} nodes) meshed in {cal['mesh_s']:.1f} s; one pair at "
+               f"P={p[0]:g} mmHg, C={p[1]:g} Pa, θ={p[2]:g}/{p[3]:g}° took {cal['cold_pair_s']:.2f} s on 1 core ({status})"
+               + (f", the next pressure warm-started from it {cal['warm_pair_s']:.2f} s: "
+                  f"{cal['pair_s']:.2f} s a pair over a pressure chain" if "warm_pair_s" in cal else ""))
+    typer.echo(f"estimate: {cost.core_hours:.2f} core-hours"
+               + (f", {cost.wall_hours_at_cores * 60:.1f} min wall on {cost.cores} cores" if cost.cores else "")
+               + f"; store ≈ {cost.store_bytes_estimate / 1e6:.0f} MB ({cal['case_bytes'] / 1e3:.1f} kB per case), "
+               f"{store_objects:,} objects")
+    typer.echo(f"to finish in one hour: {cost.cores_for_one_hour:,} cores, e.g. "
+               f"{cost.worker_nodes_for_one_hour:,} worker nodes of 32 vCPUs (cluster.yaml's c7i.8xlarge)")
+    full = cost.paper_full_sweep_core_hours
+    line = (f"full paper sweep (19,440 pairs) at this fidelity and mesh size: {full:.1f} core-hours, "
+            f"{full * 60 / 64:.0f} min on 64 cores, store ≈ {cost.paper_full_sweep_store_bytes / 1e9:.2f} GB")
+    if cost.fast_goal is not None:
+        line += (f"; goal ≤ 8 core-hours (≤ 1.5 s a pair): "
+                 f"{'met' if cost.fast_goal['meets'] else 'NOT met'} ({cal['pair_s']:.2f} s a pair)")
+    typer.echo(line)
 
 
 def print_sweep_bench(result: dict, as_json: bool) -> None:

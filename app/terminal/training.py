@@ -83,7 +83,7 @@ def print_evaluation(report: dict, split: str, store: str, as_json: bool) -> Non
     table.add_column("cm", justify="right")
     if ref:
         table.add_column(f"vs converged ({ref['fidelity']}, {ref['cases']} cases)", justify="right")
-        table.add_column(f"labels vs converged", justify="right")
+        table.add_column("labels vs converged", justify="right")
     for key, name, cm in (("dsc_1mm", "DSC @ 1 mm", False), ("dsc_01mm", "DSC @ 0.1 mm", False),
                           ("hd_mm", "HD (mm)", True), ("md_mm", "MD (mm)", True), ("sd_mm", "SD (mm)", True),
                           ("nn_md_mm", "MD, nearest node (mm)", True), ("max_mm", "max node error (mm)", True)):
