@@ -28,9 +28,10 @@ def store_objects(shapes: int, cases_per_shape: int, sharded: bool = True) -> in
 def existing_counts(location: str) -> dict:
     """Done and failed cases of the store's shapes, and how many shapes it has meshed."""
     try:
-        counts = PairReader(location).counts()
+        reader = PairReader(location)
     except Exception:
         return {"done": 0, "failed": 0, "meshed": 0}
+    counts = reader.counts()
     return {"done": counts.done, "failed": counts.failed, "meshed": counts.meshed}
 
 

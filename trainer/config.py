@@ -285,7 +285,7 @@ def _convert(key: str, text: str, like):
     except (KeyError, ValueError):
         kind = {bool: "true or false", int: "an integer", float: "a finite number",
                 tuple: "comma-separated integers"}[type(like)]
-        raise TrainerError(f"set={key}={text}: {key} takes {kind}") from None
+        raise TrainerError(f"`set` {key}={text}: {key} takes {kind}") from None
     return value
 
 

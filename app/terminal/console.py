@@ -29,7 +29,7 @@ def flags_in(text: str) -> str:
     options = {} if command is None else {p.name: max(p.opts, key=len) for p in command.params
                                           if getattr(p, "opts", None) and p.opts[0].startswith("-")}
     text = re.sub(r"`([a-z][a-z0-9_]*)`", lambda m: options.get(m[1]) or "--" + m[1].replace("_", "-"), text)
-    return re.sub(r"(?<![\w`.:-])([a-z][a-z0-9_]*)=(?=\S)",
+    return re.sub(r"(?:^|(?<=[\s(]))([a-z][a-z0-9_]*)=(?=[\w'\"/.-])",
                   lambda m: f"{options[m[1]]} " if m[1] in options else m[0], text)
 
 

@@ -132,7 +132,7 @@ def source_shape_sets(attrs: dict) -> dict:
             sets[SOURCE_NAMES[str(name).lower()]].add(int(shape))
     if not sets["train"] or not sets["test"]:
         raise TrainerError("`split` source: the store records no source split with train and test shapes "
-                           "(root attribute `splits` or per-shape `source_split`)")
+                           "(root attribute 'splits' or per-shape 'source_split')")
     return sets
 
 

@@ -430,7 +430,7 @@ class _Training:
             for group in self.opt.param_groups:
                 group["lr"] = cfg.lr
             if dist.is_main:
-                dist.log(f"lr={cfg.lr:g} (the run started at {saved_lr:g}): the rate restarts at {cfg.lr:g}")
+                dist.log(f"learning rate {cfg.lr:g} (the run started at {saved_lr:g}): the rate restarts at {cfg.lr:g}")
 
     def train_epoch(self, epoch: int) -> list:
         """One epoch of steps; returns the loss, supervised and cycle terms summed over the epoch's graphs
