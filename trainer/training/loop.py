@@ -273,8 +273,8 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
             break
         t_ep = time.perf_counter()
         sums = run.train_epoch(epoch)
-        row = run.judge_epoch(epoch, sums, t_ep, made_run_dir)
-        run.record_epoch(epoch, row, local if writes else None)
+        row, n_val = run.judge_epoch(epoch, sums, t_ep, made_run_dir)
+        run.record_epoch(epoch, row, n_val, local if writes else None)
         if run.standing.stopped:
             break
     if run.writer is not None:
@@ -463,9 +463,9 @@ class _Training:
             n_graphs += g
         return _all_reduce(acc.tolist() + [n_graphs], dist)
 
-    def judge_epoch(self, epoch: int, sums: list, t_ep: float, made_run_dir: bool) -> dict:
+    def judge_epoch(self, epoch: int, sums: list, t_ep: float, made_run_dir: bool) -> tuple[dict, int]:
         """Validate, stop on a non-finite loss (TrainingDiverged), step the plateau schedule, keep the
-        best weights, decide early stopping; returns the epoch's metrics row."""
+        best weights, decide early stopping; returns the epoch's metrics row and its validation cases."""
         cfg, s = self.cfg, self.standing
         train_loss = sums[0] / max(sums[3], 1)
         val_loss, val_md, n_val = _validate(self.evaluated, self.val_loader, cfg, self.dist,
@@ -485,7 +485,7 @@ class _Training:
         return {"epoch": epoch + 1, "train_loss": train_loss, "train_sup": sums[1] / max(sums[3], 1),
                 "train_cycle": sums[2] / max(sums[3], 1), "val_loss": val_loss,
                 "val_md_mm": val_md, "lr": self.opt.param_groups[0]["lr"], "epoch_s": ep_s,
-                "graphs_per_s": sums[3] / ep_s, "_n_val": n_val}
+                "graphs_per_s": sums[3] / ep_s}, n_val
 
     def _diverged(self, epoch: int, train_loss: float, val_loss: float, made_run_dir: bool) -> None:
         """All ranks see the same reduced sums, so all stop here; nothing of this epoch is kept."""
@@ -501,11 +501,10 @@ class _Training:
                                f"{self.opt.param_groups[0]['lr']:g})"
                                + (" or start a new run directory" if saved_epoch is not None else ""))
 
-    def record_epoch(self, epoch: int, row: dict, local: Path | None) -> None:
+    def record_epoch(self, epoch: int, row: dict, n_val: int, local: Path | None) -> None:
         """The epoch's row in the history, metrics.csv and TensorBoard, its log line, a checkpoint when
         one is due (written to `local` when this process writes), and the report to Ray Train."""
         cfg, dist, s = self.cfg, self.dist, self.standing
-        n_val = row.pop("_n_val")
         s.history.append(row)
         last = epoch + 1 == cfg.epochs or s.stopped
         save = last or (epoch + 1) % max(cfg.checkpoint_every, 1) == 0
