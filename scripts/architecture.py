@@ -122,10 +122,6 @@ def circles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-def _is_package_init(module: str, files: dict[str, Path]) -> bool:
-    return files[module].name == "__init__.py"
-
-
 def upward_imports(graph: dict[str, set[str]]) -> list[str]:
     """Imports from a lower layer to a higher one, or between the two layer-2 packages."""
     found = []

@@ -158,14 +158,19 @@ class PairReader:
                 ids.append(int(key))
         return sorted(ids)
 
-    def _group(self, shape_id: int):
-        """The group of a ready shape, unchecked; StoreError for one the store has not meshed."""
+    def _ready_group(self, shape_id: int):
+        """The group of a ready shape, unchecked, or None when the store has not meshed it."""
         shapes = self.root["shapes"]
         key = str(shape_id)
-        if key not in shapes or not shapes[key].attrs.get("ready", False):
+        return shapes[key] if key in shapes and shapes[key].attrs.get("ready", False) else None
+
+    def _group(self, shape_id: int):
+        """The group of a ready shape, unchecked; StoreError for one the store has not meshed."""
+        group = self._ready_group(shape_id)
+        if group is None:
             raise StoreError(f"shape {shape_id} is not meshed in this store (shapes with data: "
                              f"{id_ranges(self.shape_ids())})")
-        return shapes[key]
+        return group
 
     def _shape(self, shape_id: int):
         """The group of a ready shape (looked up and checked once); StoreError for one the store has
@@ -204,9 +209,7 @@ class PairReader:
         """The cases of one shape by status (CaseCounts): all pending when it is not meshed, all
         unknown when its arrays are not what the schema implies. `damage`: its table_damage, when
         known already."""
-        try:
-            self._group(shape_id)
-        except StoreError:  # not meshed
+        if self._ready_group(shape_id) is None:  # not meshed
             return CaseCounts(pending=self.n_cases)
         damage = self.table_damage(shape_id) if damage is None else damage
         if damage and damage[0][0] is None:
