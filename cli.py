@@ -12,15 +12,15 @@ from app.terminal.console import (fail, failures, json_line, mesh_progress, prog
 from app.terminal.generation import (check_sweep_memory, print_nothing_to_run, print_plan, print_sweep_bench,
                                      print_sweep_report, sweep_or_fail, warn_high_pressure, warn_high_pressures)
 from app.terminal.inputs import (case_parameters, check_fibres, check_output, read_mesh_file, set_solver_threads,
-                                 solve_budget, write_mesh_file)
+                                 solve_budget, split_names, write_mesh_file)
 from app.terminal.l2u import print_l2u_check
 from app.terminal.options import (Base, BaseOpt, Direction, DropoutOpt, EmaOpt, EndoOpt, EpiOpt, FibresOpt,
                                   FidelityName, FidelityOpt, GenerateOptions, LayerOpt, LearningCurveOptions,
                                   LrScheduleOpt, NodeInputOpt, OutputScaleOpt, PresetLrScheduleOpt, PresetScalePctOpt,
                                   PressureOpt, Problem, RotateDegOpt, ScalePctOpt, SetOpt, StiffnessOpt, ThreadsOpt,
-                                  TrainOptions, Units, UnitsOpt, UnloadMethod, UnloadOptions)
-from app.terminal.solving import (print_convergence, print_corners, print_inflated, print_land, print_shape_mesh,
-                                  print_solver_bench, print_trade, report_header)
+                                  TrainOptions, Units, UnitsOpt, UnloadFidelity, UnloadMethod, UnloadOptions)
+from app.terminal.solving import (print_adaptive_bench, print_convergence, print_corners, print_inflated, print_land,
+                                  print_shape_mesh, print_solver_bench, print_trade, report_header)
 from app.terminal.status import print_exported, print_status
 from app.terminal.training import (print_ablation, print_ablation_seeds, print_evaluation, print_learning_curve,
                                    print_model_bench, print_training, run_training_here, run_training_on_ray)
@@ -100,7 +100,7 @@ def _given(ctx: typer.Context, name: str) -> bool:
 def unload(ctx: typer.Context, mesh_path: Path = UnloadOptions.mesh_path, pressure: float = PressureOpt,
            stiffness: float = StiffnessOpt, endo: float = EndoOpt, epi: float = EpiOpt,
            out: Path = UnloadOptions.out, method: UnloadMethod = UnloadOptions.method,
-           fidelity: FidelityName = FidelityOpt, base: Base = BaseOpt, units: Units = UnitsOpt,
+           fidelity: UnloadFidelity = UnloadOptions.fidelity, base: Base = BaseOpt, units: Units = UnitsOpt,
            tol_mm: float = UnloadOptions.tol_mm, run: list[Path] = UnloadOptions.run,
            rotations: int = UnloadOptions.rotations, fibres: str = FibresOpt,
            tolerance_mm: float = UnloadOptions.tolerance_mm, check: bool = UnloadOptions.check,
@@ -200,13 +200,34 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
 
     with failures():
         check_fibres(fibres)
-        spec = ConvergenceSpec(tuple(s.strip() for s in shapes.split(",") if s.strip()),
-                               tuple(c.strip() for c in cases.split(",") if c.strip()), parse_hierarchies(meshes),
+        spec = ConvergenceSpec(split_names(shapes), split_names(cases), parse_hierarchies(meshes),
                                base=base.value, fibres=fibres,
                                quad_degrees=parse_quad_degrees(quadrature)).validate()
         result = run_convergence(spec, out / "solves", progress=typer.echo)
     details = f", solver sha256:{result['solver']}; base {base.value}, {fibres} fibres."
     print_convergence(result, write_report(result, out, report_header("convergence", details, threads)))
+
+
+@bench_app.command("adaptive")
+def bench_adaptive(shapes: str = typer.Option("mean", "--shapes", help="Comma-separated: mean | minus2 | plus2 (every shape mode at 0, −2 or +2 SD)."),
+                   cases: str = typer.Option("mid,hard", "--cases", help="Comma-separated: mid (8 mmHg, 150 Pa) | hard (14 mmHg, 50 Pa)."),
+                   nodes: int = typer.Option(350, "--nodes", help="The gmsh mesh's size (150–2000 nodes)."),
+                   tolerance: str = typer.Option("0.05", "--tolerance", help="Comma-separated targets of the adaptive unload (p95, mm)."),
+                   base: Base = BaseOpt, fibres: str = FibresOpt,
+                   out: Path = typer.Option(Path("reports/adaptive"), "--out", help="Report folder: adaptive.md, adaptive.json."),
+                   threads: int = typer.Option(1, "--threads", help="Threads for the sparse solver.")):
+    """Adaptive unloading against the converged solution: the error indicator's ranking of the true
+    local error, and the adaptive answer's error, estimate and time against `reference`'s."""
+    set_solver_threads(threads)
+    from bench.adaptive import AdaptiveSpec, parse_tolerances, run_adaptive, write_report
+
+    with failures():
+        check_fibres(fibres)
+        spec = AdaptiveSpec(split_names(shapes), split_names(cases), nodes,
+                            parse_tolerances(split_names(tolerance)), base.value, fibres).validate()
+        result = run_adaptive(spec, progress=typer.echo)
+    print_adaptive_bench(result, write_report(result, out, report_header("adaptive", f", solver sha256:{result['solver']}; "
+                                                                   f"base {base.value}, {fibres} fibres.", threads)))
 
 
 @bench_app.command("trade")

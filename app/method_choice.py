@@ -12,12 +12,14 @@ TRADE_FILE = "trade.json"
 
 
 def parse_method(name: str) -> dict:
-    """'hybrid accurate +2' → {"method": "hybrid", "preset": "accurate", "updates": 2}."""
+    """'hybrid accurate +2' → {"method": "hybrid", "preset": "accurate", "updates": 2}; 'fe adaptive 0.05' →
+    {"method": "fe", "preset": "adaptive", "tolerance_mm": 0.05}."""
     parts = name.split()
     if parts[0] == "gnn":
         return {"method": "gnn", "preset": None, "updates": None, "ensemble": len(parts) > 1}
     if parts[0] == "fe":
-        return {"method": "fe", "preset": parts[1], "updates": None, "ensemble": False}
+        return {"method": "fe", "preset": parts[1], "updates": None, "ensemble": False,
+                "tolerance_mm": float(parts[2]) if len(parts) > 2 else None}
     updates = None if parts[2] == "to" else int(parts[2].lstrip("+"))
     return {"method": "hybrid", "preset": parts[1], "updates": updates, "ensemble": False}
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 METHODS = ("fe", "gnn", "hybrid", "auto")
+ADAPTIVE = "adaptive"  # the `fidelity` of solver.adaptive: accurate, refined locally to a tolerance
 SOLVER_OPTIONS = ("fidelity", "tol_mm")  # options of the inverse FE, which --method gnn does not run
 TRAINED_CHOICES = ("base", "fibres")  # model choices a network is trained with, checked against the user's
 
@@ -40,9 +41,15 @@ class UnloadRequest:
         check_fibre_rule(self.fibres)
         if self.rotations < 1 or (self.rotations > 1 and self.method == "fe"):
             raise ValueError(f"`rotations` must be ≥ 1 and applies to `method` gnn|hybrid, got {self.rotations}")
-        if (self.tolerance_mm is None) != (self.method != "auto"):
-            raise ValueError("`method` auto needs `tolerance_mm` X" if self.tolerance_mm is None
-                             else "`tolerance_mm` applies to `method` auto (use `tol_mm` for the inverse FE's mismatch)")
+        adaptive = self.fidelity == ADAPTIVE
+        if adaptive and self.method != "fe":
+            raise ValueError(f"`fidelity` {ADAPTIVE} applies to `method` fe")
+        if (self.tolerance_mm is None) != (self.method != "auto" and not adaptive):
+            raise ValueError(f"`method` auto and `fidelity` {ADAPTIVE} need `tolerance_mm` X" if self.tolerance_mm is None
+                             else f"`tolerance_mm` applies to `method` auto and `fidelity` {ADAPTIVE} (use `tol_mm` for "
+                                  f"the inverse FE's mismatch)")
+        if self.tolerance_mm is not None and not (math.isfinite(self.tolerance_mm) and self.tolerance_mm > 0):
+            raise ValueError(f"`tolerance_mm` must be a finite number > 0, got {self.tolerance_mm}")
         if self.check and self.method == "fe":
             raise ValueError("`check` applies to `method` gnn|hybrid|auto: `method` fe prints its own mismatch")
         if self.method == "gnn" and not self.check:
@@ -62,7 +69,8 @@ class UnloadRequest:
             from trainer.shipped import shipped_run
 
             runs = (shipped_run(),)
-        plan = UnloadPlan(self.method, self.fidelity, self.base, self.fibres, self.tol_mm, runs, self.rotations, asked)
+        plan = UnloadPlan(self.method, self.fidelity, self.base, self.fibres, self.tol_mm, runs, self.rotations, asked,
+                          tolerance_mm=self.tolerance_mm if self.fidelity == ADAPTIVE else None)
         if self.method != "auto":
             return plan, None
         from .method_choice import choose_method, load_trade
@@ -70,13 +78,14 @@ class UnloadRequest:
         choice = choose_method(load_trade(runs[0]), self.tolerance_mm, n_nodes, with_ensemble=len(runs) > 1)
         runs = runs if choice["ensemble"] or choice["method"] != "gnn" else runs[:1]
         return replace(plan, method=choice["method"], fidelity=choice["preset"] or self.fidelity, runs=runs,
-                       max_updates=choice["updates"]), choice
+                       max_updates=choice["updates"], tolerance_mm=choice.get("tolerance_mm")), choice
 
 
 @dataclass(frozen=True)
 class UnloadPlan:
     """A checked request made concrete: `method` fe | gnn | hybrid with its settings (UnloadRequest's),
-    `asked` the model choices the user named, `max_updates` a hybrid's inverse-update budget."""
+    `asked` the model choices the user named, `max_updates` a hybrid's inverse-update budget,
+    `tolerance_mm` the adaptive loop's target (fidelity adaptive)."""
 
     method: str
     fidelity: str
@@ -87,12 +96,22 @@ class UnloadPlan:
     rotations: int
     asked: dict
     max_updates: int | None = None
+    tolerance_mm: float | None = None
 
 
 def unload_mesh(lv, params, plan: UnloadPlan) -> dict:
     """Unload the ED TetMesh `lv` (mm) at CaseParameters `params` by plan.method (fe | gnn | hybrid).
-    Returns {"method", "unloaded_nodes"}, with "inverse" (the InverseResult) for fe, and for gnn and
-    hybrid the fields of trainer.evaluation.predict.unload_with_network. SolveError when the inverse FE fails."""
+    Returns {"method", "unloaded_nodes"}, with "inverse" (the InverseResult) for fe, and "adaptive" (the
+    AdaptiveResult) for fidelity adaptive, and for gnn and hybrid the fields of
+    trainer.evaluation.predict.unload_with_network. SolveError when the inverse FE fails."""
+    if plan.method == "fe" and plan.fidelity == ADAPTIVE:
+        from solver.adaptive import adaptive_unload
+        from solver.progress import report
+
+        result = adaptive_unload(lv, params, plan.tolerance_mm, plan.base, plan.fibres, tol_mm=plan.tol_mm,
+                                 report=report)
+        return {"method": "fe", "unloaded_nodes": result.unloaded_nodes, "inverse": result.inverse,
+                "adaptive": result}
     if plan.method == "fe":
         from solver.lv import inverse_solve
 

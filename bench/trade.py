@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.convergence import LevelSolve, SolveCache
+from solver.adaptive import adaptive_unload
 from solver.forward import SolveError
 from solver.lv import inverse_solve
 from solver.mesh import MeshError, TetMesh, check_geometry
@@ -43,7 +44,8 @@ class TradeSpec:
     check_preset: the preset of the a-posteriori re-inflation; network_only: score the network (and
     its ensemble) alone, no FE or hybrid methods; first_shape: the first held-out shape id (None: the
     one after the run's last; runs trained on different stores are then scored on the same shapes); seed:
-    the held-out shapes' shape-model seed (None: the run's store's; another seed holds no training shape)."""
+    the held-out shapes' shape-model seed (None: the run's store's; another seed holds no training shape);
+    adaptive_tolerance_mm: the target of the adaptive FE row (`unload --fidelity adaptive --tolerance-mm`)."""
 
     runs: tuple[str, ...]
     shapes: int = 2
@@ -54,6 +56,7 @@ class TradeSpec:
     network_only: bool = False
     first_shape: int | None = None
     seed: int | None = None  # the held-out shapes' seed (None: the run's store's)
+    adaptive_tolerance_mm: float = 0.05
 
     def validate(self) -> "TradeSpec":
         if not self.runs:
@@ -66,6 +69,8 @@ class TradeSpec:
             raise ValueError(f"`user_nodes` must be 0 or 150–5000, got {self.user_nodes}")
         if self.first_shape is not None and self.first_shape < 0:
             raise ValueError(f"`first_shape` must be ≥ 0, got {self.first_shape}")
+        if not (math.isfinite(self.adaptive_tolerance_mm) and self.adaptive_tolerance_mm > 0):
+            raise ValueError(f"`adaptive_tolerance_mm` must be a number > 0, got {self.adaptive_tolerance_mm}")
         if any(k < 1 for k in self.hybrid_updates):
             raise ValueError("hybrid update budgets must be ≥ 1")
         return self
@@ -164,10 +169,26 @@ def method_names(spec: TradeSpec, ensemble: bool) -> list[str]:
     names = ["gnn"] + (["gnn ensemble"] if ensemble else [])
     if spec.network_only:
         return names
-    names += [f"fe {p}" for p in FE_PRESETS_COMPARED]
+    names += [f"fe {p}" for p in FE_PRESETS_COMPARED] + [adaptive_name(spec)]
     names += [f"hybrid {p} +{k}" for p in FE_PRESETS_COMPARED for k in spec.hybrid_updates]
     names += [f"hybrid {p} to tol" for p in FE_PRESETS_COMPARED]
     return names
+
+
+def adaptive_name(spec: TradeSpec) -> str:
+    return f"fe adaptive {spec.adaptive_tolerance_mm:g}"
+
+
+def _adaptive_answer(name: str, ed: TetMesh, params: CaseParameters, tolerance_mm: float, base: str,
+                     fibres: str) -> Answer:
+    """The adaptive unload (solver.adaptive) to `tolerance_mm`; a tolerance not met is still an answer,
+    scored like the others."""
+    t0 = time.perf_counter()
+    try:
+        r = adaptive_unload(ed, params, tolerance_mm, base, fibres)
+    except (SolveError, MeshError) as exc:
+        return Answer(name, None, time.perf_counter() - t0, failed=str(exc).splitlines()[0][:160])
+    return Answer(name, r.unloaded_nodes, time.perf_counter() - t0, updates=r.updates, mismatch_mm=r.mismatch_mm)
 
 
 def _network_guess(predictor, ed: TetMesh, params: CaseParameters) -> tuple[np.ndarray, float]:
@@ -206,6 +227,7 @@ def solve_case(case: HeldOutCase, ed: TetMesh, predictors: dict, spec: TradeSpec
                                            usable, k, guess_s))
         answers.append(_inverse_answer(f"hybrid {preset} to tol", ed, case.params, preset, base, fibres,
                                        usable, None, guess_s))
+    answers.append(_adaptive_answer(adaptive_name(spec), ed, case.params, spec.adaptive_tolerance_mm, base, fibres))
     return answers
 
 

@@ -9,7 +9,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .elements import build_dofmap, cell_quadrature, facet_dofs, facet_quadrature
+from skfem.quadrature import get_quadrature
+from skfem.refdom import RefTri
+
+from .elements import build_dofmap, cell_quadrature, facet_dofs, facet_quadrature, simplex_shape
 from .fidelity import Fidelity
 from .material import FungParameters, green_lagrange, guccione_response, voigt_frame_tensors
 
@@ -18,7 +21,8 @@ from .material import FungParameters, green_lagrange, guccione_response, voigt_f
 class Supports:
     """Displacement supports: on the dofs of `facets`, the listed components are fixed at zero.
     With `gauge`, the in-plane rigid motions left free (x, y translation, rotation about z) are
-    removed by three Lagrange multipliers on the mean motion of those dofs. `gauge_region="volume"`
+    removed by three Lagrange multipliers on the area-weighted mean motion of those facets
+    (∫u_x dA = ∫u_y dA = ∫(X − X̄) × u · e_z dA = 0, the same conditions on any mesh of the surface). `gauge_region="volume"`
     instead imposes, as heartFEM does, ∫u_x = ∫u_y = 0 and ∫X × u = 0 (all three components, five
     multipliers) over the whole wall. An optional normal spring on `spring_facets` (reference
     normal N) resists wall motion along N."""
@@ -238,13 +242,15 @@ class MechanicsProblem:
     def _gauge_rows(self) -> np.ndarray:
         if self.supports.gauge_region == "volume":
             return self._volume_gauge_rows()
+        w, m = _surface_moments(self.dofmap, np.asarray(self.supports.facets))
         dofs = np.unique(facet_dofs(self.dofmap, np.asarray(self.supports.facets)))
-        X = self.dofmap.points[dofs]
-        c = X.mean(axis=0)
-        w = 1.0 / dofs.size
+        w, m = w[dofs], m[dofs]
+        area = w.sum()
+        c = m.sum(axis=0) / area  # the base's centroid
+        m = m - w[:, None] * c
         rows = np.concatenate([np.full(dofs.size, 0), np.full(dofs.size, 1), np.full(2 * dofs.size, 2)])
         cols = np.concatenate([3 * dofs, 3 * dofs + 1, 3 * dofs + 1, 3 * dofs])
-        vals = w * np.concatenate([np.ones(dofs.size), np.ones(dofs.size), X[:, 0] - c[0], -(X[:, 1] - c[1])])
+        vals = np.concatenate([w, w, m[:, 0], -m[:, 1]]) / area
         self._gauge_cols = cols
         self._gauge_r = rows
         return vals
@@ -533,6 +539,24 @@ def _displacement_chunk(F, S, P, cof, w, swap_w, voigt_grads, grads, grads_t, gr
     for i in range(3):
         K[:, :, i, :, i] += geometric
     return H
+
+
+def _surface_moments(dofmap, facets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """w_d = ∫_S φ_d dA (mm²) and m_d = ∫_S φ_d X dA (mm³, [ndofs, 3]) over the triangles `facets` in the
+    reference configuration, for every dof d (zero off S; a P2 vertex's w is zero, its edges' carry
+    the area), by the degree-3 triangle rule (exact: a quadratic φ times a linear X)."""
+    X, W = get_quadrature(RefTri, 3)
+    lam = np.vstack([1 - X.sum(axis=0), X])
+    vals, _ = simplex_shape(dofmap.order, lam)
+    fd = facet_dofs(dofmap, facets)
+    corners = dofmap.points[facets]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    dA = 2.0 * area[:, None] * W[None, :]  # [nf, nq]; the reference triangle's weights sum to 1/2
+    xq = np.einsum("fvi,vq->fqi", corners, lam)
+    w = np.bincount(fd.ravel(), weights=np.einsum("bq,fq->fb", vals, dA).ravel(), minlength=dofmap.n_dofs)
+    m = np.stack([np.bincount(fd.ravel(), weights=np.einsum("bq,fq,fq->fb", vals, dA, xq[..., i]).ravel(),
+                              minlength=dofmap.n_dofs) for i in range(3)], axis=1)
+    return w, m
 
 
 def _det_cofactor(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

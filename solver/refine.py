@@ -31,11 +31,10 @@ def _split_triangles(dofmap, tris: np.ndarray) -> np.ndarray:
                            ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
 
 
-def _refine_once(mesh: TetMesh) -> TetMesh:
-    dofmap = build_dofmap(mesh.nodes, mesh.tets, 2)
-    nodes = dofmap.points  # vertices, then edge midpoints
-    v = [mesh.tets[:, i] for i in range(4)]
-    m = {tuple(e): dofmap.cell_dofs[:, 4 + k] for k, e in enumerate(TET_EDGES.tolist())}
+def red_children(nodes: np.ndarray, v: list, m: dict) -> list[np.ndarray]:
+    """The 8 children [k, 4] each of tets with vertices v[0..3] (arrays [k]) and edge midpoints
+    m[(i, j)] (arrays [k], for the six local edges i < j): 4 corner tets and the inner octahedron in 4
+    along its shortest diagonal (keeps the elements' shape quality bounded under repeated refinement)."""
     m01, m02, m03, m12, m13, m23 = (m[(0, 1)], m[(0, 2)], m[(0, 3)], m[(1, 2)], m[(1, 3)], m[(2, 3)])
     corners = [(v[0], m01, m02, m03), (m01, v[1], m12, m13), (m02, m12, v[2], m23), (m03, m13, m23, v[3])]
     # the octahedron's three diagonals join opposite edge midpoints: (m01, m23), (m02, m13), (m03, m12)
@@ -50,7 +49,15 @@ def _refine_once(mesh: TetMesh) -> TetMesh:
     for k in range(4):
         rows = [np.stack([p, q, cycle[k], cycle[(k + 1) % 4]], axis=1) for p, q, cycle in around]
         inner.append(np.select([(choice == c)[:, None] for c in range(3)], rows))
-    new_tets = orient_positive(nodes, np.concatenate([np.stack(t, axis=1) for t in corners] + inner))
+    return [np.stack(t, axis=1) for t in corners] + inner
+
+
+def _refine_once(mesh: TetMesh) -> TetMesh:
+    dofmap = build_dofmap(mesh.nodes, mesh.tets, 2)
+    nodes = dofmap.points  # vertices, then edge midpoints
+    v = [mesh.tets[:, i] for i in range(4)]
+    m = {tuple(e): dofmap.cell_dofs[:, 4 + k] for k, e in enumerate(TET_EDGES.tolist())}
+    new_tets = orient_positive(nodes, np.concatenate(red_children(nodes, v, m)))
     endo, epi, base = (_split_triangles(dofmap, f) for f in (mesh.endo, mesh.epi, mesh.base))
     info = dict(mesh.info, refinement_levels=int(mesh.info.get("refinement_levels", 0)) + 1)
     return make_mesh(nodes, new_tets, endo, epi, base, info=info)

@@ -499,3 +499,24 @@ def test_a_pressure_above_end_diastolic_is_warned_by_solve_and_unload(lv_file, t
                                         "cases may take long and fail"), r.output
     quiet = run(command, lv_file, "--pressure", 8, "--stiffness", 150, "-o", tmp_path / "x.vtu")
     assert "warning" not in quiet.output
+
+
+def test_unload_adaptive_writes_its_error_estimate(lv_file, tmp_path):
+    """--fidelity adaptive --tolerance-mm X: accurate, then refined where the indicator is largest; the
+    output carries the estimated nodal error; without a tolerance, or with a network method, one line
+    and exit 2, nothing written."""
+    out = tmp_path / "adaptive.vtu"
+    base = ("unload", lv_file, "--pressure", 8, "--stiffness", 150, "-o", out)
+    r = run(*base, "--fidelity", "adaptive", "--tolerance-mm", 5.0)
+    assert r.exit_code == 0, r.output
+    assert "adaptive" in r.output and "tolerance 5 mm met" in r.output
+    m = meshio.read(out)
+    assert m.points.shape[0] == read_mesh(lv_file).n_nodes
+    estimate = m.point_data["estimated_error"]
+    assert np.all(np.isfinite(estimate)) and np.percentile(estimate, 95) <= 5.0
+    out.unlink()
+    for extra in (("--fidelity", "adaptive"), ("--fidelity", "adaptive", "--tolerance-mm", 0.1, "--method", "gnn"),
+                  ("--fidelity", "adaptive", "--tolerance-mm", -1)):
+        r = run(*base, *extra)
+        assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
+        assert not out.exists()

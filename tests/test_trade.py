@@ -118,6 +118,8 @@ def test_choose_method_cheapest_that_met_the_tolerance():
         choose_method(table, float("nan"), 310, False)
     assert parse_method("hybrid fast to tol") == {"method": "hybrid", "preset": "fast", "updates": None,
                                                   "ensemble": False}
+    adaptive = choose_method(_table([("training", 300, "fe adaptive 0.05", 2, 0.04, 3.0)]), 0.05, 300, False)
+    assert (adaptive["method"], adaptive["preset"], adaptive["tolerance_mm"]) == ("fe", "adaptive", 0.05)
 
 
 def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):
@@ -131,7 +133,7 @@ def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):
     spec = TradeSpec((str(trained),), shapes=1, cases=1, user_nodes=0, hybrid_updates=(1,))
     result = run_trade(spec, tmp_path / "solves")
     methods = {r["method"] for r in result["rows"]}
-    assert methods == {"gnn", "fe fast", "fe accurate", "hybrid fast +1", "hybrid accurate +1",
+    assert methods == {"gnn", "fe fast", "fe accurate", "fe adaptive 0.05", "hybrid fast +1", "hybrid accurate +1",
                        "hybrid fast to tol", "hybrid accurate to tol"}
     rows = {r["method"]: r for r in result["rows"]}
     assert rows["fe accurate"]["max_mm"] < 1e-3  # the stand-in reference is accurate's own answer

@@ -4,6 +4,7 @@ refusal one line and exit status 2."""
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 from . import console
@@ -53,6 +54,11 @@ def write_mesh_file(out: Path, *args, **kwargs) -> None:
         fail(f"cannot write {out}: {exc.strerror or exc}")
 
 
+def split_names(text: str) -> tuple[str, ...]:
+    """A comma-separated option as its non-empty, stripped items."""
+    return tuple(item.strip() for item in text.split(",") if item.strip())
+
+
 def read_mesh_file(path: Path, units: str):
     """storage.meshfiles.read_mesh, its MeshUnitsWarning (sizes no human LV has) as one line on stderr."""
     from storage.meshfiles import read_mesh
@@ -63,18 +69,20 @@ def read_mesh_file(path: Path, units: str):
 
 def solve_budget(mesh_path: Path, lv, preset: str, inverse: bool):
     """solver.budget's estimate of this solve; refused in one line (exit 2) when its peak memory
-    exceeds the memory available here."""
+    exceeds the memory available here. An adaptive solve is bounded by `reference`'s (its finest mesh)."""
+    from app.unload import ADAPTIVE
     from solver.budget import estimate_solve, mesh_counts
 
+    asked, preset = preset, ("reference" if preset == ADAPTIVE else preset)
     edges, faces = mesh_counts(lv.tets, len(lv.endo) + len(lv.epi) + len(lv.base))
     est = estimate_solve(preset, lv.n_nodes, edges, len(lv.tets), faces, inverse)
     available = console.available_memory()
     if est.peak_bytes > available:
         instead = {"fast": "a coarser mesh", "accurate": "--fidelity fast or a coarser mesh",
                    "reference": "--fidelity accurate or fast, or a coarser mesh"}[preset]
-        fail(f"{mesh_path}: the {preset} {'inverse ' if inverse else ''}solve of {lv.n_nodes:,} nodes "
+        fail(f"{mesh_path}: the {asked} {'inverse ' if inverse else ''}solve of {lv.n_nodes:,} nodes "
              f"({est.unknowns:,} unknowns) needs about {size_text(est.peak_bytes)}; {size_text(available)} are available: "
              f"use {instead}")
-    return est
+    return est if asked == preset else replace(est, preset=f"{asked} (at most {preset}'s)")
 
 

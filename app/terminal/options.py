@@ -6,7 +6,7 @@ from enum import Enum
 
 import typer
 
-from app.unload import METHODS
+from app.unload import ADAPTIVE, METHODS
 from solver.fidelity import PRESETS
 from solver.parameters import BASE_CONDITIONS, SOLVE_DIRECTIONS
 from storage.meshfiles import UNIT_TO_MM
@@ -24,6 +24,9 @@ Units = _choices("Units", UNIT_TO_MM)
 
 
 FidelityName = _choices("FidelityName", PRESETS)
+
+
+UnloadFidelity = _choices("UnloadFidelity", (*PRESETS, ADAPTIVE))
 
 
 Direction = _choices("Direction", SOLVE_DIRECTIONS)
@@ -128,6 +131,10 @@ class UnloadOptions:
     method = typer.Option(UnloadMethod.fe, "--method", help="fe: inverse finite elements; "
                           "gnn: the trained network; hybrid: network guess refined by inverse FE; "
                           "auto: the cheapest that met --tolerance-mm on the run's trade table.")
+    fidelity = typer.Option(UnloadFidelity.accurate, "--fidelity", help="Solver preset: fast (P1/P1) | accurate "
+                            "(P2/P1) | reference (accurate on the mesh refined once: near the converged solution, "
+                            "~10× accurate's time) | adaptive (accurate, refined where the error indicator is "
+                            "largest until the estimated p95 nodal error is ≤ --tolerance-mm).")
     tol_mm = typer.Option(None, "--tol-mm", help="Max nodal mismatch to stop at, mm (preset default 1e-4).")
     run = typer.Option(None, "--run", help="Run directory of a trained network (--method gnn|hybrid|auto; "
                        "default: the network shipped with heartctl); "
@@ -135,8 +142,9 @@ class UnloadOptions:
                        "gets their per-node spread).")
     rotations = typer.Option(1, "--rotations", help="--method gnn|hybrid: average the network over K turns "
                              "about the long axis (K× the time; best with --rotate-deg 180 runs).")
-    tolerance_mm = typer.Option(None, "--tolerance-mm", help="--method auto: the p95 nodal error against "
-                                "the converged solution you accept, mm (bench trade measured it).")
+    tolerance_mm = typer.Option(None, "--tolerance-mm", help="--method auto or --fidelity adaptive: the p95 nodal "
+                                "error against the converged solution you accept, mm (auto: as bench trade measured "
+                                "it; adaptive: as its error estimate puts it).")
     check = typer.Option(False, "--check", help="--method gnn|hybrid|auto: inflate the answer again (one "
                          "forward solve at --fidelity) and print how far it lands from the ED mesh.")
 

@@ -98,6 +98,20 @@ def print_corners(rows: list, presets: list, out: Path | None, header: str) -> N
         typer.echo(f"report: {out / 'stability.md'}")
 
 
+def print_adaptive_bench(result: dict, paths: dict) -> None:
+    """`bench adaptive`: per case, the indicator's ranking and each tolerance's error, estimate and time."""
+    for r in result["rows"]:
+        k = r["ranking"]
+        typer.echo(f"{r['shape']:>6} {r['case']:>4} {r['nodes']} nodes: indicator Spearman {k['spearman']:.2f}, "
+                   f"top 20 % holds {k['top_share']:.0%} of the true error² (best {k['best_share']:.0%}); accurate "
+                   f"{r['accurate']['mean_mm']:.3f} mm mean, {r['accurate']['wall_s']:.1f} s; reference {r['reference_s']:.1f} s")
+        for a in r["adaptive"]:
+            typer.echo(f"{'':>12} adaptive to {a['tolerance_mm']:g} mm: {a['mean_mm']:.3f} mm mean / {a['p95_mm']:.3f} p95 "
+                       f"(estimated p95 {a['estimate_p95_mm']:.3f}, {'met' if a['met'] else 'not met'}), {a['wall_s']:.1f} s "
+                       f"= {a['time_vs_reference']:.2f} × reference")
+    typer.echo(f"report: {paths['markdown']}")
+
+
 def print_convergence(result: dict, paths: dict) -> None:
     """`bench convergence`: each hierarchy's level differences and order, each quadrature variant's error."""
     for o in result["orders"]:

@@ -44,9 +44,13 @@ def unload_or_fail(lv, params, plan) -> dict:
 
 def write_unloaded(out: Path, lv, result: dict, units: str) -> None:
     """The unloaded mesh with point data `displacement` (ED − unloaded) and, for an ensemble of
-    networks, `ensemble_spread` (a hybrid's answer is the FE's: no network spread to show)."""
+    networks, `ensemble_spread` (a hybrid's answer is the FE's: no network spread to show); an adaptive
+    solve's `estimated_error` (mm, per node)."""
     shift = lv.nodes - result["unloaded_nodes"]
     point_data, lengths = {"displacement": shift}, ["displacement"]
+    if result.get("adaptive") is not None and result["adaptive"].steps[-1].estimate_p95_mm is not None:
+        point_data["estimated_error"] = result["adaptive"].estimated_error_mm
+        lengths.append("estimated_error")
     if result["method"] == "gnn" and result["members"] > 1:
         point_data["ensemble_spread"] = result["spread_mm"]
         lengths.append("ensemble_spread")
@@ -59,7 +63,9 @@ def print_unloaded(result: dict, lv, params, plan, out: Path) -> None:
     d = np.linalg.norm(lv.nodes - result["unloaded_nodes"], axis=1)
     moved = f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}"
     inv = result.get("inverse")
-    if result["method"] == "fe":
+    if result.get("adaptive") is not None:
+        print_adaptive(result["adaptive"], params, plan, moved)
+    elif result["method"] == "fe":
         typer.echo(f"unloaded at {params.label()} ({plan.fidelity}, {plan.base} base): {inv.updates} updates, "
                    f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, "
                    f"mismatch {inv.mismatch_mm:.2e} mm; {moved}")
@@ -81,6 +87,18 @@ def print_unloaded(result: dict, lv, params, plan, out: Path) -> None:
                    f", then {plan.fidelity} inverse FE{budget}): {inv.updates} updates, "
                    f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
                    f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; {moved}")
+
+
+def print_adaptive(adaptive, params, plan, moved: str) -> None:
+    """An adaptive unload: each mesh it solved on, and whether the estimate met the tolerance."""
+    steps = "; ".join(f"{s.nodes:,} nodes" + (f" ({s.split_tets} of the ED tets split)" if s.split_tets else "")
+                      + f" {s.wall_s:.1f} s" + (f", estimated p95 {s.estimate_p95_mm:.3f} mm"
+                                                 if s.estimate_p95_mm is not None else "") for s in adaptive.steps)
+    last = adaptive.steps[-1]
+    verdict = ("met" if adaptive.met else
+               f"NOT met: estimated p95 {last.estimate_p95_mm:.3f} mm after the last refinement; the answer is that solve's")
+    typer.echo(f"unloaded at {params.label()} (adaptive, {plan.base} base): {steps}; tolerance "
+               f"{plan.tolerance_mm:g} mm {verdict}; {adaptive.stats.wall_s:.2f} s, mismatch {adaptive.mismatch_mm:.2e} mm; {moved}")
 
 
 def unload_and_report(mesh_path: Path, lv, params, plan, choice: dict | None, request, out: Path, units: str) -> None:
