@@ -44,10 +44,12 @@ class UnloadRequest:
         adaptive = self.fidelity == ADAPTIVE
         if adaptive and self.method != "fe":
             raise ValueError(f"`fidelity` {ADAPTIVE} applies to `method` fe")
-        if (self.tolerance_mm is None) != (self.method != "auto" and not adaptive):
-            raise ValueError(f"`method` auto and `fidelity` {ADAPTIVE} need `tolerance_mm` X" if self.tolerance_mm is None
-                             else f"`tolerance_mm` applies to `method` auto and `fidelity` {ADAPTIVE} (use `tol_mm` for "
-                                  f"the inverse FE's mismatch)")
+        if self.tolerance_mm is None and (self.method == "auto" or adaptive):
+            raise ValueError("`method` auto needs `tolerance_mm` X" if self.method == "auto"
+                             else f"`fidelity` {ADAPTIVE} needs `tolerance_mm` X")
+        if self.tolerance_mm is not None and self.method != "auto" and not adaptive:
+            raise ValueError(f"`tolerance_mm` applies to `method` auto or `fidelity` {ADAPTIVE} (use `tol_mm` for the "
+                             f"inverse FE's mismatch)")
         if self.tolerance_mm is not None and not (math.isfinite(self.tolerance_mm) and self.tolerance_mm > 0):
             raise ValueError(f"`tolerance_mm` must be a finite number > 0, got {self.tolerance_mm}")
         if self.check and self.method == "fe":

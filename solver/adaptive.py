@@ -16,7 +16,7 @@ indicator is largest, until the estimated nodal error of the unloaded geometry m
    Local refinement moves the error about more than it scales it (the error in X is spread over the
    wall: each tet's discretisation error acts on every node through the inverse), so the change is of
    the size of the new answer's error rather than a fraction of it: measured against `reference`, e_k's
-   p95 is within about ±25 % of the true p95 error of X_k (docs/solver.md, "Adaptive refinement").
+   p95 is 0.5–1.7× the true p95 error of X_k (docs/solver.md, "Adaptive refinement").
 4. Stop when the 95th percentile of e_k is ≤ the tolerance (met), or when no tet is left to split or
    after `max_steps` refinements (not met; the answer is the last one, with its estimate).
 
