@@ -101,27 +101,41 @@ class UnloadPlan:
     tolerance_mm: float | None = None
 
 
-def unload_mesh(lv, params, plan: UnloadPlan) -> dict:
+@dataclass
+class UnloadResult:
+    """An ED mesh unloaded as a plan asked: the unloaded geometry [n, 3] (mm) by `method` (fe | gnn |
+    hybrid), with the inverse FE's InverseResult (fe, hybrid), the AdaptiveResult (fe at fidelity
+    adaptive) and the network's NetworkUnload (gnn, hybrid)."""
+
+    method: str
+    unloaded_nodes: object
+    inverse: object = None
+    adaptive: object = None
+    network: object = None
+
+    @property
+    def warnings(self) -> list:
+        return list(self.network.warnings) if self.network is not None else []
+
+
+def unload_mesh(lv, params, plan: UnloadPlan) -> UnloadResult:
     """Unload the ED TetMesh `lv` (mm) at CaseParameters `params` by plan.method (fe | gnn | hybrid).
-    Returns {"method", "unloaded_nodes"}, with "inverse" (the InverseResult) for fe, and "adaptive" (the
-    AdaptiveResult) for fidelity adaptive, and for gnn and hybrid the fields of
-    trainer.evaluation.predict.unload_with_network. SolveError when the inverse FE fails."""
+    SolveError when the inverse FE fails."""
     if plan.method == "fe" and plan.fidelity == ADAPTIVE:
         from solver.adaptive import adaptive_unload
         from solver.progress import report
 
         result = adaptive_unload(lv, params, plan.tolerance_mm, plan.base, plan.fibres, tol_mm=plan.tol_mm,
                                  report=report)
-        return {"method": "fe", "unloaded_nodes": result.unloaded_nodes, "inverse": result.inverse,
-                "adaptive": result}
+        return UnloadResult("fe", result.unloaded_nodes, result.inverse, adaptive=result)
     if plan.method == "fe":
         from solver.lv import inverse_solve
 
         result = inverse_solve(lv, params, plan.fidelity, plan.base, tol_mm=plan.tol_mm, fibres=plan.fibres)
-        return {"method": "fe", "unloaded_nodes": result.unloaded_nodes, "inverse": result}
+        return UnloadResult("fe", result.unloaded_nodes, result)
     from trainer.evaluation.predict import unload_with_network
 
     result = unload_with_network(lv, params, [Path(r) for r in plan.runs], plan.method, plan.fidelity,
                                  plan.base, plan.tol_mm, fibres=plan.fibres, asked=plan.asked,
                                  rotations=plan.rotations, max_updates=plan.max_updates)
-    return {"method": plan.method, **result}
+    return UnloadResult(plan.method, result.unloaded_nodes, result.inverse, network=result)

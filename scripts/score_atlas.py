@@ -79,12 +79,12 @@ def main() -> None:
             print(f"{path.name}: {mesh.n_nodes} nodes, reference solve {ref_s:.0f} s", flush=True)
             continue
         net = unload_with_network(mesh, params, [run])
-        error = np.linalg.norm(net["unloaded_nodes"] - reference, axis=1)
+        error = np.linalg.norm(net.unloaded_nodes - reference, axis=1)
         regions = region_means(mesh.nodes, error)
         rows.append((error.mean(), error.max(), regions))
-        print(f"{path.name}: {mesh.n_nodes} nodes, network {net['network_ms']:.1f} ms: mean {error.mean():.3f} / max "
+        print(f"{path.name}: {mesh.n_nodes} nodes, network {net.network_ms:.1f} ms: mean {error.mean():.3f} / max "
               f"{error.max():.3f} mm; base {regions['base']:.3f}, mid {regions['mid']:.3f}, apex {regions['apex']:.3f} "
-              f"(reference solve {ref_s:.0f} s)" + "".join(f"\n  warning: {w}" for w in net["warnings"]), flush=True)
+              f"(reference solve {ref_s:.0f} s)" + "".join(f"\n  warning: {w}" for w in net.warnings), flush=True)
     if rows:
         print(f"mean over {len(rows)} meshes: {np.mean([r[0] for r in rows]):.3f} mm mean node error, "
               f"{np.mean([r[1] for r in rows]):.3f} mm mean of the largest; apex {np.mean([r[2]['apex'] for r in rows]):.3f}")

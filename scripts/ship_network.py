@@ -34,7 +34,7 @@ def bundled_pairs_mean_mm(run: Path) -> float:
         mesh = make_mesh(*(data[f"{i}_{k}"].astype(np.int64) if k != "nodes" else data[f"{i}_{k}"]
                            for k in ("nodes", "tets", "endo", "epi", "base")))
         out = unload_with_network(mesh, CaseParameters(*data[f"{i}_params"]), [run])
-        errors.append(float(np.linalg.norm(out["unloaded_nodes"] - data[f"{i}_reference"], axis=1).mean()))
+        errors.append(float(np.linalg.norm(out.unloaded_nodes - data[f"{i}_reference"], axis=1).mean()))
     return float(np.mean(errors))
 
 

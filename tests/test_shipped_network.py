@@ -102,7 +102,7 @@ def test_the_shipped_network_scores_as_its_model_card_says_on_bundled_reference_
         mesh = make_mesh(data[f"{i}_nodes"], data[f"{i}_tets"].astype(np.int64), data[f"{i}_endo"].astype(np.int64),
                          data[f"{i}_epi"].astype(np.int64), data[f"{i}_base"].astype(np.int64))
         out = unload_with_network(mesh, CaseParameters(*data[f"{i}_params"]), [run])
-        errors.append(np.linalg.norm(out["unloaded_nodes"] - data[f"{i}_reference"], axis=1))
+        errors.append(np.linalg.norm(out.unloaded_nodes - data[f"{i}_reference"], axis=1))
     card = json.loads(shipped.MANIFEST.read_text())["bundled_pairs_mean_mm"]
     assert np.mean([e.mean() for e in errors]) == pytest.approx(card, abs=2e-3)
     assert all(e.mean() <= 2.0 * card for e in errors)

@@ -109,7 +109,7 @@ def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
     out = unload_with_network(m, CaseParameters(8.0, 100.0, 60.0, -60.0), trained["run"], "hybrid", "fast",
                               "clamped", fibres="heartfem")
     assert seen["fidelity"] == "fast" and seen["base"] == "clamped" and seen["fibres"] == "heartfem"
-    assert (seen["guess"] is None) == out["fallback"]
+    assert (seen["guess"] is None) == out.fallback
 
 
 def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(trained, monkeypatch):
@@ -131,8 +131,8 @@ def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(t
 
     monkeypatch.setattr(solver.lv, "inverse_solve", inverse_failing_from_a_guess)
     out = unload_with_network(lv_mesh(0), CaseParameters(8.0, 100.0, 60.0, -60.0), trained["run"], "hybrid", "fast")
-    assert calls == [True, False] and out["fallback"] and out["guess_attempt_s"] >= 0
-    assert any("did not converge" in w and "started again from the ED mesh" in w for w in out["warnings"])
+    assert calls == [True, False] and out.fallback and out.guess_attempt_s >= 0
+    assert any("did not converge" in w and "started again from the ED mesh" in w for w in out.warnings)
 
 
 def test_train_makes_the_run_dirs_folders(trained, tmp_path):
@@ -327,12 +327,12 @@ def test_ensemble_is_the_mean_of_its_members_and_reports_their_spread(trained, t
     assert r.exit_code == 0, r.output
     m = lv_mesh(1)
     params = CaseParameters(8.0, 100.0, 60.0, -60.0)
-    single = [unload_with_network(m, params, d)["unloaded_nodes"] for d in (trained["run"], other)]
+    single = [unload_with_network(m, params, d).unloaded_nodes for d in (trained["run"], other)]
     both = unload_with_network(m, params, [trained["run"], other])
-    np.testing.assert_allclose(both["unloaded_nodes"], (single[0] + single[1]) / 2, atol=1e-5)
+    np.testing.assert_allclose(both.unloaded_nodes, (single[0] + single[1]) / 2, atol=1e-5)
     half_gap = np.linalg.norm(single[0] - single[1], axis=1) / 2  # two members: RMS spread = half their distance
-    np.testing.assert_allclose(both["spread_mm"], half_gap, atol=1e-5)
-    assert both["members"] == 2 and half_gap.max() > 0
+    np.testing.assert_allclose(both.spread_mm, half_gap, atol=1e-5)
+    assert both.members == 2 and half_gap.max() > 0
 
     ed, o = tmp_path / "ed.vtu", tmp_path / "o.vtu"
     write_mesh(ed, m)
@@ -396,9 +396,9 @@ def test_network_unloading_does_not_depend_on_where_the_mesh_lies(trained):
 
     m = lv_mesh(1)
     params = CaseParameters(10.0, 150.0, 60.0, -60.0)
-    here = unload_with_network(m, params, trained["run"])["unloaded_nodes"] - m.nodes
+    here = unload_with_network(m, params, trained["run"]).unloaded_nodes - m.nodes
     shift = np.array([25.0, -15.0, 40.0])
-    there = unload_with_network(m.with_nodes(m.nodes + shift), params, trained["run"])["unloaded_nodes"] - m.nodes - shift
+    there = unload_with_network(m.with_nodes(m.nodes + shift), params, trained["run"]).unloaded_nodes - m.nodes - shift
     np.testing.assert_allclose(there, here, atol=2e-5)
     assert np.abs(here).max() > 0.1
 
@@ -504,7 +504,7 @@ def test_ensemble_warnings_speak_for_every_member(trained, tmp_path):
                                                           param_hi=[6.0, *s["normalisation"]["param_hi"][1:]]))
     params = CaseParameters(12.0, 100.0, 60.0, -60.0)
     for order in ([trained["run"], low], [low, trained["run"]]):
-        warnings = unload_with_network(lv_mesh(0), params, order)["warnings"]
+        warnings = unload_with_network(lv_mesh(0), params, order).warnings
         assert any("pressure 12 is outside the training grid [4, 6]" in w for w in warnings), warnings
 
 

@@ -30,63 +30,63 @@ def print_check(lv, unloaded, params, fidelity: str, base: str, fibres: str) -> 
                f"{chk.max_mm:.3f} mm max from the ED mesh: an estimate of its error against the {fidelity} model")
 
 
-def unload_or_fail(lv, params, plan) -> dict:
+def unload_or_fail(lv, params, plan):
     """app.unload.unload_mesh: an inverse FE that fails exits 1, a network's refusal 2; the
     network's warnings as lines on stderr."""
     from app.unload import unload_mesh
 
     with failures(solve="inverse solve did not converge"):
         result = unload_mesh(lv, params, plan)
-    for w in result.get("warnings", ()):
+    for w in result.warnings:
         say(f"heartctl: warning: {w}", err=True)
     return result
 
 
-def write_unloaded(out: Path, lv, result: dict, units: str) -> None:
+def write_unloaded(out: Path, lv, result, units: str) -> None:
     """The unloaded mesh with point data `displacement` (ED − unloaded) and, for an ensemble of
     networks, `ensemble_spread` (a hybrid's answer is the FE's: no network spread to show); an adaptive
     solve's `estimated_error` (mm, per node)."""
-    shift = lv.nodes - result["unloaded_nodes"]
+    shift = lv.nodes - result.unloaded_nodes
     point_data, lengths = {"displacement": shift}, ["displacement"]
-    if result.get("adaptive") is not None and result["adaptive"].steps[-1].estimate_p95_mm is not None:
-        point_data["estimated_error"] = result["adaptive"].estimated_error_mm
+    if result.adaptive is not None and result.adaptive.steps[-1].estimate_p95_mm is not None:
+        point_data["estimated_error"] = result.adaptive.estimated_error_mm
         lengths.append("estimated_error")
-    if result["method"] == "gnn" and result["members"] > 1:
-        point_data["ensemble_spread"] = result["spread_mm"]
+    if result.method == "gnn" and result.network.members > 1:
+        point_data["ensemble_spread"] = result.network.spread_mm
         lengths.append("ensemble_spread")
-    write_mesh_file(out, lv, result["unloaded_nodes"], point_data=point_data, units=units, length_fields=tuple(lengths))
+    write_mesh_file(out, lv, result.unloaded_nodes, point_data=point_data, units=units, length_fields=tuple(lengths))
 
 
-def print_unloaded(result: dict, lv, params, plan, out: Path) -> None:
+def print_unloaded(result, lv, params, plan, out: Path) -> None:
     """One line: how the mesh was unloaded (FE's updates and mismatch, the network's time, or the
     hybrid's both) and the ED − unloaded displacement."""
-    d = np.linalg.norm(lv.nodes - result["unloaded_nodes"], axis=1)
+    d = np.linalg.norm(lv.nodes - result.unloaded_nodes, axis=1)
     moved = f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm → {out}"
-    inv = result.get("inverse")
-    if result.get("adaptive") is not None:
-        print_adaptive(result["adaptive"], params, plan, moved)
-    elif result["method"] == "fe":
+    inv, net = result.inverse, result.network
+    if result.adaptive is not None:
+        print_adaptive(result.adaptive, params, plan, moved)
+    elif result.method == "fe":
         typer.echo(f"unloaded at {params.label()} ({plan.fidelity}, {plan.base} base): {inv.updates} updates, "
                    f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, "
                    f"mismatch {inv.mismatch_mm:.2e} mm; {moved}")
-    elif result["method"] == "gnn":
-        spread = (f"; the {result['members']} networks disagree by {result['spread_mm'].mean():.3f} mm mean / "
-                  f"{result['spread_mm'].max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
-                  if result["members"] > 1 else "")
-        typer.echo(f"unloaded at {params.label()} by the network {result['run']} in {result['network_ms']:.1f} ms "
-                   f"(first call with graph building{' and the linear FE response' if result['with_response'] else ''} "
-                   f"{result['first_call_ms']:.0f} ms); "
+    elif result.method == "gnn":
+        spread = (f"; the {net.members} networks disagree by {net.spread_mm.mean():.3f} mm mean / "
+                  f"{net.spread_mm.max():.3f} mm max (RMS about their mean, point data ensemble_spread)"
+                  if net.members > 1 else "")
+        typer.echo(f"unloaded at {params.label()} by the network {net.run} in {net.network_ms:.1f} ms "
+                   f"(first call with graph building{' and the linear FE response' if net.with_response else ''} "
+                   f"{net.first_call_ms:.0f} ms); "
                    f"ED − unloaded mean {d.mean():.3f} / max {d.max():.3f} mm{spread} → {out}")
     else:
         dropped = ""
-        if result["fallback"]:
-            lost = result.get("guess_attempt_s")
+        if net.fallback:
+            lost = net.guess_attempt_s
             dropped = ", guess unusable" + (f" after {lost:.1f} s of inverse FE from it" if lost is not None else "")
         budget = f", at most {plan.max_updates} updates" if plan.max_updates is not None else ""
-        typer.echo(f"unloaded at {params.label()} (hybrid: network {result['network_ms']:.1f} ms{dropped}"
+        typer.echo(f"unloaded at {params.label()} (hybrid: network {net.network_ms:.1f} ms{dropped}"
                    f", then {plan.fidelity} inverse FE{budget}): {inv.updates} updates, "
                    f"{inv.stats.newton_iterations} Newton iterations, {inv.stats.wall_s:.2f} s, mismatch {inv.mismatch_mm:.2e} mm; "
-                   f"network guess was {result['guess_error_mm']:.3f} mm (max) from the FE answer; {moved}")
+                   f"network guess was {net.guess_error_mm:.3f} mm (max) from the FE answer; {moved}")
 
 
 def print_adaptive(adaptive, params, plan, moved: str) -> None:
@@ -114,4 +114,4 @@ def unload_and_report(mesh_path: Path, lv, params, plan, choice: dict | None, re
     write_unloaded(out, lv, result, units)
     print_unloaded(result, lv, params, plan, out)
     if request.check and plan.method != "fe":
-        print_check(lv, result["unloaded_nodes"], params, plan.fidelity, plan.base, plan.fibres)
+        print_check(lv, result.unloaded_nodes, params, plan.fidelity, plan.base, plan.fibres)

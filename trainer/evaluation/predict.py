@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -324,10 +325,35 @@ def _model_warnings(pred: Predictor | Ensemble, asked: dict) -> list:
     return out
 
 
+@dataclass
+class NetworkUnload:
+    """An ED mesh unloaded by the network (gnn) or from its guess (hybrid).
+
+    unloaded_nodes [n, 3] mm; network_ms: one forward pass, warm; first_call_ms: the first, graph building
+    and linear response included; warnings: lines for the user; run: the network's label; members: the
+    ensemble's size; spread_mm [n]: the members' RMS disagreement per node; with_response: whether the
+    network takes the linear FE response. Hybrid: inverse (the InverseResult), fallback (the inverse
+    started from the ED mesh), guess_error_mm (the guess's largest distance from the answer),
+    guess_attempt_s (time lost on a guess the inverse did not converge from)."""
+
+    unloaded_nodes: np.ndarray
+    network_ms: float
+    first_call_ms: float
+    warnings: list
+    run: str
+    members: int
+    spread_mm: np.ndarray
+    with_response: bool
+    inverse: object = None
+    fallback: bool = False
+    guess_error_mm: float | None = None
+    guess_attempt_s: float | None = None
+
+
 def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: str = "accurate",
                         base: str = "sliding", tol_mm: float | None = None, device: str = "cpu",
                         fibres: str = "laplace", asked: dict | None = None, rotations: int = 1,
-                        max_updates: int | None = None) -> dict:
+                        max_updates: int | None = None) -> "NetworkUnload":
     """Unload an ED TetMesh (mm) at CaseParameters `params`.
 
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
@@ -336,8 +362,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     differ from the training store's draw a warning. rotations: test-time averaging (Predictor).
     max_updates: hybrid only, stop after that many inverse updates from the guess (solver.lv.inverse_solve).
     run_dirs: one run directory, or several for an ensemble (their mean; Ensemble).
-    Returns {"unloaded_nodes", "network_ms", "spread_mm" (per node, members' RMS disagreement, mm),
-    "warnings", and for hybrid "inverse" (the InverseResult) and "fallback"}."""
+    Returns a NetworkUnload."""
     if method not in ("gnn", "hybrid"):
         raise TrainerError(f"unknown network method {method!r}")
     run_dirs = [run_dirs] if isinstance(run_dirs, (str, Path)) else list(run_dirs)
@@ -350,20 +375,18 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     first_ms = (time.perf_counter() - t) * 1e3
     net_ms = pred.time_ms_per_case([(feat, values, None)], 1, repeats=5, warmup=3)  # the model alone, warm
     guess = mesh.nodes + disp
-    out = {"network_ms": net_ms, "first_call_ms": first_ms,
-           "warnings": _warnings(pred, feat, values, units_warned="units_warning" in mesh.info)
-           + _shape_warnings(pred, mesh, units_warned="units_warning" in mesh.info),
-           "run": pred.run_label, "members": len(pred.members), "spread_mm": spread,
-           "with_response": pred.uses_response}
+    out = NetworkUnload(guess, net_ms, first_ms,
+                        _warnings(pred, feat, values, units_warned="units_warning" in mesh.info)
+                        + _shape_warnings(pred, mesh, units_warned="units_warning" in mesh.info),
+                        pred.run_label, len(pred.members), spread, pred.uses_response)
     if method == "gnn":
         from solver.mesh import MeshError, check_geometry
 
-        out["warnings"] += _model_warnings(pred, asked or {})
+        out.warnings += _model_warnings(pred, asked or {})
         try:
             check_geometry(guess, mesh.tets)
         except MeshError as exc:
-            out["warnings"].append(f"the predicted unloaded mesh is not valid ({exc}); use `method` hybrid")
-        out["unloaded_nodes"] = guess
+            out.warnings.append(f"the predicted unloaded mesh is not valid ({exc}); use `method` hybrid")
         return out
     from solver.forward import SolveError
     from solver.lv import inverse_solve
@@ -373,7 +396,7 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     try:
         check_geometry(guess, mesh.tets)
     except MeshError as exc:
-        out["warnings"].append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
+        out.warnings.append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
         fallback = True
     t = time.perf_counter()
     try:
@@ -383,16 +406,16 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
         if fallback:
             raise
         # the guess is a valid mesh from which inverse FE did not converge: hybrid is never worse than fe
-        out["guess_attempt_s"] = time.perf_counter() - t
+        out.guess_attempt_s = time.perf_counter() - t
         reason = str(exc).splitlines()[0][:100]
-        out["warnings"].append(f"inverse FE from the network guess did not converge in "
-                               f"{out['guess_attempt_s']:.1f} s ({reason}); it started again from the ED mesh")
+        out.warnings.append(f"inverse FE from the network guess did not converge in "
+                            f"{out.guess_attempt_s:.1f} s ({reason}); it started again from the ED mesh")
         fallback = True
         try:
             result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=tol_mm, fibres=fibres,
                                    max_updates=max_updates)
         except SolveError as again:
             raise SolveError(f"{again} (from the network guess before: {reason})") from None
-    out.update({"unloaded_nodes": result.unloaded_nodes, "inverse": result, "fallback": fallback,
-                "guess_error_mm": float(np.linalg.norm(guess - result.unloaded_nodes, axis=1).max())})
+    out.guess_error_mm = float(np.linalg.norm(guess - result.unloaded_nodes, axis=1).max())
+    out.unloaded_nodes, out.inverse, out.fallback = result.unloaded_nodes, result, fallback
     return out
