@@ -32,7 +32,7 @@ def run(tmp_path_factory):
 
 
 def _shape_lines(mesh, run_dir) -> list:
-    return [w for w in unload_with_network(mesh, PARAMS, run_dir, "gnn")["warnings"] if OUTSIDE in w]
+    return [w for w in unload_with_network(mesh, PARAMS, run_dir, "gnn").warnings if OUTSIDE in w]
 
 
 def test_checkpoint_records_training_shapes_descriptors(run):
@@ -72,5 +72,5 @@ def test_checkpoint_without_descriptors_still_loads_and_warns_nothing(run, tmp_p
     save_checkpoint(run_checkpoint_path(old), state)
     thin = mesh_lv(shape_from_coefficients([0.0, 0.0, -4.0, 0.0, -1.0, 0.0]), 120)
     out = unload_with_network(thin, PARAMS, old, "gnn")
-    assert np.all(np.isfinite(out["unloaded_nodes"]))
-    assert not any(OUTSIDE in w for w in out["warnings"])
+    assert np.all(np.isfinite(out.unloaded_nodes))
+    assert not any(OUTSIDE in w for w in out.warnings)
