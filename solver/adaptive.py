@@ -28,13 +28,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .elements import build_dofmap
 from .error_indicator import bulk_marking, gradient_indicator
 from .fidelity import get_fidelity
 from .forward import SolveStats
 from .lv import InverseResult, displacement_at_dofs, inverse_solve
 from .local_refine import LocalRefinement, refine_marked
 from .mesh import TetMesh
-from .elements import build_dofmap
 from .parameters import CaseParameters
 
 ADAPTIVE_PRESET = "accurate"
@@ -138,9 +138,10 @@ def _carried_unloaded(ed_mesh: TetMesh, last: LocalRefinement, X_last: np.ndarra
     midpoint of an ED edge (a, b), an edge of the last mesh, takes x_ED − u_last at that edge's P2 dof."""
     last_ids, ids = last.fine_ids, following.fine_ids
     X = following.mesh.nodes.copy()
-    position = {int(f): i for i, f in enumerate(last_ids)}
-    known = np.array([int(f) in position for f in ids])
-    X[known] = X_last[[position[int(f)] for f in ids[known]]]
+    order = np.argsort(last_ids)
+    at = np.minimum(np.searchsorted(last_ids[order], ids), len(order) - 1)
+    known = last_ids[order[at]] == ids
+    X[known] = X_last[order[at[known]]]
     if (~known).any():
         n = ed_mesh.n_nodes
         ends = build_dofmap(ed_mesh.nodes, ed_mesh.tets, 2).edge_vertices[ids[~known] - n]  # ED vertices a, b

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .elements import TET_EDGES, build_dofmap
+from .elements import TET_EDGES, build_dofmap, facet_dofs
 from .mesh import TetMesh, make_mesh, orient_positive
 from .refine import red_children
 
@@ -152,8 +152,6 @@ def _split_facets(facets: np.ndarray, dofmap, node_of_edge: np.ndarray) -> np.nd
     if len(facets) == 0:
         return facets.copy()
     n = dofmap.n_vertices
-    from .elements import facet_dofs
-
     edges = facet_dofs(dofmap, facets)[:, 3:] - n  # edges ab, bc, ac
     mid = node_of_edge[edges]
     s = mid >= 0
