@@ -153,9 +153,16 @@ class Answer:
 def _inverse_answer(method: str, ed: TetMesh, params: CaseParameters, preset: str, base: str, fibres: str,
                     guess: np.ndarray | None = None, max_updates: int | None = None,
                     network_s: float = 0.0) -> Answer:
+    return _timed_answer(method, lambda: inverse_solve(ed, params, preset, base, initial_unloaded=guess,
+                                                       fibres=fibres, max_updates=max_updates), network_s)
+
+
+def _timed_answer(method: str, solve, network_s: float = 0.0) -> Answer:
+    """`solve()` (an InverseResult or AdaptiveResult) timed and scored as an Answer; a solve that fails
+    is an Answer with its reason. `network_s`: the network's time before it (hybrids)."""
     t0 = time.perf_counter()
     try:
-        r = inverse_solve(ed, params, preset, base, initial_unloaded=guess, fibres=fibres, max_updates=max_updates)
+        r = solve()
     except (SolveError, MeshError) as exc:
         return Answer(method, None, time.perf_counter() - t0 + network_s, network_s,
                       failed=str(exc).splitlines()[0][:160])
@@ -177,18 +184,6 @@ def method_names(spec: TradeSpec, ensemble: bool) -> list[str]:
 
 def adaptive_name(spec: TradeSpec) -> str:
     return f"fe adaptive {spec.adaptive_tolerance_mm:g}"
-
-
-def _adaptive_answer(name: str, ed: TetMesh, params: CaseParameters, tolerance_mm: float, base: str,
-                     fibres: str) -> Answer:
-    """The adaptive unload (solver.adaptive) to `tolerance_mm`; a tolerance not met is still an answer,
-    scored like the others."""
-    t0 = time.perf_counter()
-    try:
-        r = adaptive_unload(ed, params, tolerance_mm, base, fibres)
-    except (SolveError, MeshError) as exc:
-        return Answer(name, None, time.perf_counter() - t0, failed=str(exc).splitlines()[0][:160])
-    return Answer(name, r.unloaded_nodes, time.perf_counter() - t0, updates=r.updates, mismatch_mm=r.mismatch_mm)
 
 
 def _network_guess(predictor, ed: TetMesh, params: CaseParameters) -> tuple[np.ndarray, float]:
@@ -227,7 +222,9 @@ def solve_case(case: HeldOutCase, ed: TetMesh, predictors: dict, spec: TradeSpec
                                            usable, k, guess_s))
         answers.append(_inverse_answer(f"hybrid {preset} to tol", ed, case.params, preset, base, fibres,
                                        usable, None, guess_s))
-    answers.append(_adaptive_answer(adaptive_name(spec), ed, case.params, spec.adaptive_tolerance_mm, base, fibres))
+    # a tolerance not met is still an answer, scored like the others
+    tolerance = spec.adaptive_tolerance_mm
+    answers.append(_timed_answer(adaptive_name(spec), lambda: adaptive_unload(ed, case.params, tolerance, base, fibres)))
     return answers
 
 

@@ -107,6 +107,11 @@ def test_sliding_gauge_is_the_base_surfaces_on_any_mesh(lv):
     w, m = _surface_moments(dofmap, fine.base)
     u = result.state[: 3 * dofmap.n_dofs].reshape(-1, 3)
     area, centroid = w.sum(), m.sum(axis=0) / w.sum()
+    # the weights themselves, against the triangles' areas and area-weighted centroid
+    corners = fine.nodes[fine.base]
+    tri = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    assert area == pytest.approx(tri.sum(), rel=1e-12)
+    np.testing.assert_allclose(centroid, (tri[:, None] * corners.mean(axis=1)).sum(axis=0) / tri.sum(), atol=1e-9)
     scale = np.abs(u).max() * area
     assert abs(w @ u[:, 0]) < 1e-8 * scale and abs(w @ u[:, 1]) < 1e-8 * scale
     moment = (m[:, 0] - w * centroid[0]) @ u[:, 1] - (m[:, 1] - w * centroid[1]) @ u[:, 0]
