@@ -394,7 +394,7 @@ def bench_model_cmd(device: str = typer.Option("cpu", "--device", help="cpu | cu
 @bench_app.command("ablation")
 def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr store of FE pairs."),
                        root: Path = typer.Option(..., "--root", help="Folder for one run directory per configuration."),
-                       configs: str = typer.Option("paper,A1,A4,pca", "--configs", help="Comma-separated configurations."),
+                       configs: str = typer.Option("paper,no-cycle,gcn,pca", "--configs", help="Comma-separated configurations."),
                        epochs: int = typer.Option(40, "--epochs", help="Max epochs per configuration."),
                        batch_size: int = typer.Option(8, "--batch-size", help="Graphs per batch."),
                        sr: float = typer.Option(1.0, "--sr", help="Supervision ratio for every configuration."),

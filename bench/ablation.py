@@ -10,7 +10,7 @@ from pathlib import Path
 
 import torch
 
-from trainer.config import PAPER, TrainConfig, check_device, named_config
+from trainer.config import PAPER, TrainConfig, canonical_name, check_device, code_of, named_config
 from trainer.errors import TrainerError
 from trainer.data.store_cases import training_data
 from trainer.evaluation.evaluate import evaluate_run
@@ -20,9 +20,10 @@ from trainer.training.loop import Dist, fit
 TABLE_METRICS = (("md_mm", "MD mm", "min"), ("hd_mm", "HD mm", "min"), ("sd_mm", "SD mm", "min"),
                  ("dsc_1mm", "DSC@1mm", "max"), ("dsc_01mm", "DSC@0.1mm", "max"), ("nn_md_mm", "NN-MD mm", "min"))
 # the comparisons a table reports below itself: configuration → the rivals it should beat
-KEY_COMPARISONS = (("paper", ("A4", "pca")), ("paper", ("A1",)), ("R1", ("A1",)), ("R2", ("A1",)),
-                   ("R3", ("A1",)), ("R4", ("A1",)), ("A1ema", ("A1",)), ("R5", ("A1ema",)), ("R5", ("A1",)),
-                   ("R5", ("R4",)))
+KEY_COMPARISONS = (("paper", ("gcn", "pca")), ("paper", ("no-cycle",)), ("reverse", ("no-cycle",)),
+                   ("reverse-rampup", ("no-cycle",)), ("fixed-teacher", ("no-cycle",)),
+                   ("fixed-teacher-full-cycle", ("no-cycle",)), ("A1ema", ("no-cycle",)), ("mean-teacher", ("A1ema",)),
+                   ("mean-teacher", ("no-cycle",)), ("mean-teacher", ("fixed-teacher-full-cycle",)))
 
 
 def check_study(store: str, root: Path, split: str, device: str) -> None:
@@ -70,7 +71,7 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
     on the test split, write ablation.csv / ablation.json under root, return the rows."""
     if not configs:
         raise TrainerError("`configs` is empty")
-    models = {name: named_config(name) for name in configs}  # unknown names fail before any training
+    models = {canonical_name(name): named_config(name) for name in configs}  # unknown names fail before any training
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     takes_response = next((m for m in models.values() if m.uses_response), base.model)
@@ -79,7 +80,7 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
     for name, model in models.items():
         run_dir = root / run_name(name, base.sr)
         log(f"--- {name} → {run_dir}")
-        rows.append({"config": name, **row_from_run(replace(base, config_name=name, model=model), run_dir, device,
+        rows.append({"config": name, "code": code_of(name), **row_from_run(replace(base, config_name=name, model=model), run_dir, device,
                                                     log, bundle)})
     result = {"store": base.store, "split": base.split, "sr": base.sr, "seed": base.seed, "epochs": base.epochs,
               "rows": rows, "best": best_per_metric(rows)}

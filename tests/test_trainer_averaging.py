@@ -44,7 +44,7 @@ def store(tmp_path_factory):
 
 
 def test_mean_teacher_run_keeps_and_resumes_the_average(store, tmp_path):
-    model = replace(named_config("R5"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
+    model = replace(named_config("mean-teacher"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
     cfg = TrainConfig(store=store, config_name="R5-small", model=model, epochs=2, batch_size=4, num_threads=1,
                       sr=0.5)
     run = tmp_path / "run"

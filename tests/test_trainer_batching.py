@@ -72,7 +72,7 @@ def test_table_loader_visits_cases_like_pyg_dataloader():
     assert [b.key[:, 1].tolist() for b in val] == [[0, 1, 2], [3, 4, 5], [6]]
 
 
-@pytest.mark.parametrize("config", ["paper", "C5"])  # GAT encoder; GAT encoder and decoder
+@pytest.mark.parametrize("config", ["paper", "gat-decoder"])  # GAT encoder; GAT encoder and decoder
 def test_attention_graph_from_the_table_gives_the_same_model_outputs(config):
     """With `attention`, a batch carries its AttentionGraph assembled from each mesh's; the model
     uses it and gives what it gives when it sorts the graph from the edges itself, in every pass:

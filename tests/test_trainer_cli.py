@@ -210,7 +210,7 @@ def test_train_bad_inputs(trained, tmp_path, args, words, request):
 
 def test_train_refuses_a_run_dir_of_another_config(trained):
     assert_bad_input(run("train", "--store", trained["store"], "--run-dir", trained["run"], "--no-ray", "--config", "A1"),
-                     "model paper (this command: A1)", "batch_size 8 (this command: 16)")
+                     "model paper (this command: no-cycle)", "batch_size 8 (this command: 16)")
     assert_bad_input(run("train", "--store", trained["root"] / "missing.zarr", "--run-dir", trained["root"] / "x",
                          "--no-ray"), "no heartctl store")
 
@@ -262,10 +262,11 @@ def test_bench_ablation_table(trained, tmp_path):
     r = run(*args)
     assert r.exit_code == 0, r.output
     table = json.loads(r.output.strip().splitlines()[-1])
-    assert [row["config"] for row in table["rows"]] == ["A1", "pca", "A1ema-resp-d0"]
+    assert [row["config"] for row in table["rows"]] == ["no-cycle", "pca", "A1ema-resp-d0"]  # a code by its name
+    assert [row["code"] for row in table["rows"]] == ["A1", "", ""]
     for row in table["rows"]:
         assert row["cases"] > 0 and row["md_mm"] > 0 and 0 <= row["dsc_1mm"] <= 1 and row["hd_mm"] >= row["md_mm"]
-    assert (root / "ablation.csv").is_file() and (root / "A1" / "checkpoint.pt").is_file()
+    assert (root / "ablation.csv").is_file() and (root / "no-cycle" / "checkpoint.pt").is_file()
     again = json.loads(run(*args).output.strip().splitlines()[-1])
     assert again["rows"][0]["md_mm"] == pytest.approx(table["rows"][0]["md_mm"])
     assert_bad_input(run("bench", "ablation", "--store", trained["store"], "--root", tmp_path / "x",
@@ -632,8 +633,9 @@ def test_train_help_names_every_base_configuration_and_the_preset():
 
     assert options.CONFIG_HELP is config.CONFIG_HELP
     for name in (*config.BASE_CONFIGS, *config.PRESETS):
-        assert name in config.CONFIG_HELP or name.startswith("R"), name  # R1–R5 as a range
-    assert "R1–R5" in config.CONFIG_HELP and not any(alias in config.CONFIG_HELP for alias in config.ALIASES)
+        assert name in config.CONFIG_HELP, name
+    assert "A1–A5" in config.CONFIG_HELP and "R1–R5" in config.CONFIG_HELP
+    assert not any(alias in config.CONFIG_HELP for alias in set(config.ALIASES) - set(config.CODES))
 
 
 def test_train_composes_the_configuration_from_options_and_evaluate_prints_it(trained, tmp_path):
@@ -645,7 +647,7 @@ def test_train_composes_the_configuration_from_options_and_evaluate_prints_it(tr
     composed, alias = tmp_path / "composed", tmp_path / "alias"
     common = ("--store", trained["store"], "--no-ray", "--epochs", 1, "--batch-size", 8, "--device", "cpu",
               "--set", "hidden=8", "--set", "heads=2", "--set", "decoder_hidden=16", "--set", "param_hidden=8")
-    r = run("train", "--run-dir", composed, "--config", "A1", "--node-input", "wall", "--ema", 0.99, "--dropout", 0,
+    r = run("train", "--run-dir", composed, "--config", "no-cycle", "--node-input", "wall", "--ema", 0.99, "--dropout", 0,
             "--output-scale", "load", *common)
     assert r.exit_code == 0, r.output
     r = run("train", "--run-dir", alias, "--config", "A1ema-wall-d0-load", *common)
@@ -657,7 +659,7 @@ def test_train_composes_the_configuration_from_options_and_evaluate_prints_it(tr
     r = run("evaluate", "--run", composed, "--store", trained["store"], "--no-plots", "--out", tmp_path / "e")
     assert r.exit_code == 0, r.output
     line = next(ln for ln in r.output.splitlines() if ln.startswith("configuration:"))
-    assert line.startswith("configuration: A1 + node-input wall, ema 0.99, dropout 0, output-scale load, hidden=8"), line
+    assert line.startswith("configuration: no-cycle + node-input wall, ema 0.99, dropout 0, output-scale load, hidden=8"), line
     r = run("evaluate", "--run", composed, "--store", trained["store"], "--no-plots", "--json", "--out", tmp_path / "e")
     assert json.loads(r.output.strip().splitlines()[-1])["configuration"][0] == line.removeprefix("configuration: ")
 
@@ -816,7 +818,7 @@ def test_fine_tuning_starts_from_the_parents_weights_and_records_it(trained, tmp
 def test_fine_tuning_refuses_another_network_or_a_damaged_parent(trained, tmp_path):
     common = ("train", "--store", trained["store"], "--no-ray", "--run-dir", tmp_path / "ft", "--epochs", 1)
     assert_bad_input(run(*common, "--init-from", trained["run"], "--config", "A1"),
-                     "--init-from", "holds the network paper", "this command trains A1")
+                     "--init-from", "holds the network paper", "this command trains no-cycle")
     damaged = tmp_path / "damaged"
     shutil.copytree(trained["run"], damaged)
     state = torch.load(damaged / "checkpoint.pt", map_location="cpu", weights_only=True)

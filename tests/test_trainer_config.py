@@ -7,8 +7,8 @@ from dataclasses import fields, replace
 
 import pytest
 
-from trainer.config import (ALIASES, PAPER, ModelConfig, TrainConfig, compose, describe_model, describe_run,
-                            named_config)
+from trainer.config import (ALIASES, BASE_CONFIGS, CODES, PAPER, ModelConfig, TrainConfig, canonical_name, code_of,
+                            compose, describe_model, describe_run, named_config)
 from trainer.errors import TrainerError
 
 # the compatibility names' networks, spelt out field by field as trainer/config.py defines them
@@ -27,15 +27,15 @@ SPELT_OUT = {
 }
 # the same networks as train options
 AS_OPTIONS = {
-    "A1ema": ("A1", dict(ema=0.99)),
+    "A1ema": ("no-cycle", dict(ema=0.99)),
     "A1ema-wall": ("A1", dict(ema=0.99, node_input="wall")),
-    "A1ema-wall-d0": ("A1", dict(ema=0.99, node_input="wall", dropout=0)),
+    "A1ema-wall-d0": ("no-cycle", dict(ema=0.99, node_input="wall", dropout=0)),
     "A1ema-wall-d0-load": ("paper", dict(ema=0.99, node_input="wall", dropout=0, output_scale="load",
                                          settings=["cycle=false"])),
     "A1ema-resp-d0": ("paper", dict(node_input="response", ema=0.99, dropout=0, settings=["cycle=false"])),
     "A1ema-resp-d0-load": ("A1", dict(node_input="response", ema=0.99, dropout=0, output_scale="load")),
-    "A1ema-resp-d0-gcn": ("A1", dict(node_input="response", ema=0.99, dropout=0, layer="gcn")),
-    "R5-resp-d0": ("R5", dict(node_input="response", dropout=0, settings=["cycle-rampup-epochs=2"])),
+    "A1ema-resp-d0-gcn": ("no-cycle", dict(node_input="response", ema=0.99, dropout=0, layer="gcn")),
+    "R5-resp-d0": ("mean-teacher", dict(node_input="response", dropout=0, settings=["cycle-rampup-epochs=2"])),
 }
 
 
@@ -50,7 +50,17 @@ def test_options_compose_the_networks_of_the_compatibility_names(name):
 
 
 def test_every_compatibility_name_is_spelt_out_here():
-    assert set(ALIASES) == set(SPELT_OUT) == set(AS_OPTIONS)
+    assert set(ALIASES) - set(CODES) == set(SPELT_OUT) == set(AS_OPTIONS)
+
+
+def test_each_code_is_its_named_network():
+    """A1 … R5 give the networks of their descriptive names, which every description uses."""
+    assert set(CODES.values()) <= set(BASE_CONFIGS) and not set(CODES) & set(BASE_CONFIGS)
+    for code, name in CODES.items():
+        assert named_config(code) == named_config(code.lower()) == BASE_CONFIGS[name]
+        assert canonical_name(code) == name and code_of(name) == code_of(code) == code
+        assert describe_model(named_config(code)) == name
+    assert canonical_name("A1ema") == "A1ema" and code_of("paper") == ""
 
 
 def test_recommended_is_the_response_network_with_its_recipe():
@@ -58,9 +68,9 @@ def test_recommended_is_the_response_network_with_its_recipe():
     assert model == SPELT_OUT["A1ema-resp-d0"]
     assert training == {"scale_pct": 8.0, "lr_schedule": "cosine"}
     cfg = TrainConfig(store="s.zarr", model=model, **training)
-    assert describe_run(cfg) == ("recommended = A1 + node-input response, ema 0.99, dropout 0; "
+    assert describe_run(cfg) == ("recommended = no-cycle + node-input response, ema 0.99, dropout 0; "
                                  "scale-pct 8, lr-schedule cosine")
-    assert describe_run(replace(cfg, scale_pct=4.0)).startswith("A1 + node-input response")  # not the preset's
+    assert describe_run(replace(cfg, scale_pct=4.0)).startswith("no-cycle + node-input response")  # not the preset's
     assert compose("recommended", ema=0.0)[0].ema_decay == 0.0  # an option changes a preset too
 
 
@@ -70,7 +80,7 @@ def test_set_reads_each_fields_type_and_is_applied_last():
     assert (model.hidden, model.decoder_hidden, model.cycle, model.ema_decay, model.lambda_cycle) == \
         (64, (64, 32), False, 0.9, 0.5)
     assert training == {"weight_decay": 1e-5}
-    assert describe_model(model) == "A1 + ema 0.9, hidden=64, lambda_cycle=0.5, decoder_hidden=64,32"
+    assert describe_model(model) == "no-cycle + ema 0.9, hidden=64, lambda_cycle=0.5, decoder_hidden=64,32"
 
 
 @pytest.mark.parametrize("settings,words", [

@@ -76,7 +76,7 @@ def _permuted(g, perm):
     return h
 
 
-@pytest.mark.parametrize("name", ["paper", "multitoken", "A4", "C2", "C5", "A5", "A1ema-wall", "A1ema-resp-d0",
+@pytest.mark.parametrize("name", ["paper", "multitoken", "gcn", "sage", "gat-decoder", "broadcast-fusion", "A1ema-wall", "A1ema-resp-d0",
                                   "A1ema-resp-d0-gcn", "R5-resp-d0"])
 def test_permutation_equivariance(name, graphs):
     torch.manual_seed(1)
@@ -91,7 +91,7 @@ def test_permutation_equivariance(name, graphs):
         torch.testing.assert_close(cb, ca[perm], atol=1e-5, rtol=1e-4)
 
 
-@pytest.mark.parametrize("name", ["paper", "multitoken", "C6"])
+@pytest.mark.parametrize("name", ["paper", "multitoken", "max-pooling"])
 def test_mesh_size_agnostic_batching(name, graphs):
     """Two meshes of different node counts in one batch give what each gives alone."""
     torch.manual_seed(2)
@@ -139,7 +139,7 @@ def test_single_token_attention_is_value_projection():
 
 def test_cycle_term_trains_on_unlabelled_cases(graphs):
     """Unlabelled cases contribute only λ·cycle: non-zero gradients, and steps on them alone reduce it.
-    Without the cycle (A1) they contribute nothing."""
+    Without the cycle (no-cycle) they contribute nothing."""
     unlabelled = []
     for g in graphs:
         h = g.clone()
@@ -170,7 +170,7 @@ def test_cycle_term_trains_on_unlabelled_cases(graphs):
         opt.step()
     assert float(terms["loss"].detach()) < 0.5 * first
 
-    a1 = build_model(small(named_config("A1")), 0.1)
+    a1 = build_model(small(named_config("no-cycle")), 0.1)
     d_unl, d_ed = a1(batch)
     terms = loss_terms(d_unl, d_ed, batch, 0.2)
     terms["loss"].backward()
@@ -277,11 +277,11 @@ def test_unloading_only_cycle_gradient(graphs):
 
 
 def test_teacher_cycle_runs_the_reconstruction_on_the_given_weights(graphs):
-    """cycle_grad="teacher" (R5): the reconstruction pass is the teacher network's (another set of
+    """cycle_grad="teacher" (mean-teacher): the reconstruction pass is the teacher network's (another set of
     weights) applied to this model's unloading; the cycle gradient reaches the unloading decoder
     and never the reverse decoder. Without teacher weights it is the stop-gradient pass of R3."""
     torch.manual_seed(3)
-    cfg = replace(small(named_config("R5")), dropout=0.0)
+    cfg = replace(small(named_config("mean-teacher")), dropout=0.0)
     student, teacher = build_model(cfg, 0.1).train(), build_model(cfg, 0.1).train()
     batch = Batch.from_data_list(graphs)
     weights = {n: p.detach() for n, p in teacher.named_parameters()}
@@ -301,7 +301,7 @@ def test_teacher_cycle_runs_the_reconstruction_on_the_given_weights(graphs):
 
 def test_teacher_and_weight_average_settings_are_checked():
     with pytest.raises(TrainerError, match="ema_decay > 0"):
-        replace(named_config("R5"), ema_decay=0.0)
+        replace(named_config("mean-teacher"), ema_decay=0.0)
     with pytest.raises(TrainerError, match="ema_decay must be in"):
         replace(named_config("A1"), ema_decay=1.0)
     with pytest.raises(TrainerError, match="reverse_weight > 0"):

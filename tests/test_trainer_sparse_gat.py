@@ -71,7 +71,7 @@ def test_checkpoint_interchanges_between_kernels(lv_edges):
     """A state dict of the pyg-kernel model loads into the sparse one (old checkpoints) and predicts
     the same; the kernel is not part of a run's identity."""
     batch = _lv_batch(0)
-    small = replace(named_config("C5"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
+    small = replace(named_config("gat-decoder"), hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
     torch.manual_seed(2)
     pyg = build_model(replace(small, gat_kernel="pyg"), 0.1).eval()
     sparse = build_model(replace(small, gat_kernel="sparse"), 0.1).eval()

@@ -1,4 +1,4 @@
-"""Named configurations of HeartUnloadNet (paper, multitoken, ablations A1–A5, baselines C0–C6, PCA)
+"""Named configurations of HeartUnloadNet (the paper's, its ablations and baselines, cycle variants, PCA)
 and of a training run, as frozen dataclasses that round-trip through plain dicts (checkpoints, JSON)."""
 from __future__ import annotations
 
@@ -162,38 +162,45 @@ class ModelConfig:
 
 
 PAPER = ModelConfig()
-# The names `--config` offers: the seed paper's model, its ablations (A) and baselines (C), our cycle
-# variants (R) and the PCA baseline. Any other network is one of these plus options (compose).
+# The names `--config` offers: the seed paper's model, its ablations and baselines, our cycle variants
+# and the PCA baseline. Any other network is one of these plus options (compose).
 BASE_CONFIGS: dict[str, ModelConfig] = {
     "paper": PAPER,
     "multitoken": replace(PAPER, tokens="regional"),
-    "A1": replace(PAPER, cycle=False),  # no cycle
-    "A2": replace(PAPER, fusion="concat"),  # concatenation instead of attention fusion
-    "A3": replace(PAPER, pooling="none"),  # no pooling / mesh context
-    "A4": replace(PAPER, conv="gcn"),  # GCN instead of GAT
-    "A5": replace(PAPER, fusion="broadcast"),  # parameters broadcast to the nodes
-    "C0": replace(PAPER, conv="gatv2"),
-    "C2": replace(PAPER, conv="sage"),
-    "C5": replace(PAPER, decoder="gat"),
-    "C6": replace(PAPER, pooling="max"),
-    # ours: the reverse (unloaded→ED) decoder also learns from the labelled pairs, so the cycle term
-    # on unlabelled cases checks the unloading against a trained forward map (matters at low SR)
-    "R1": replace(PAPER, reverse_weight=1.0),
-    # R1 with λ_cycle ramped up over the first 10 epochs (the cycle term starts once the decoders
+    "no-cycle": replace(PAPER, cycle=False),
+    "concat-fusion": replace(PAPER, fusion="concat"),  # concatenation instead of attention fusion
+    "no-pooling": replace(PAPER, pooling="none"),  # no mesh-context attention
+    "gcn": replace(PAPER, conv="gcn"),
+    "broadcast-fusion": replace(PAPER, fusion="broadcast"),  # raw parameters appended to the node input
+    "gatv2": replace(PAPER, conv="gatv2"),
+    "sage": replace(PAPER, conv="sage"),
+    "gat-decoder": replace(PAPER, decoder="gat"),
+    "max-pooling": replace(PAPER, pooling="max"),
+    # the reverse (unloaded→ED) decoder also learns from the labelled pairs, so the cycle term on
+    # unlabelled cases checks the unloading against a trained forward map (matters at low SR)
+    "reverse": replace(PAPER, reverse_weight=1.0),
+    # reverse, with λ_cycle ramped up over the first 10 epochs (the cycle term starts once the decoders
     # have learnt something from the labelled pairs)
-    "R2": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10),
-    # R2 with the reconstruction pass as a fixed teacher for the cycle term (stop-gradient): the
-    # cycle moves only the unloading prediction; the reverse decoder learns from labelled pairs only
-    "R3": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading"),
-    # R3 with the cycle term weighted like the supervised one (λ_cycle = 1): with the teacher fixed,
-    # a larger weight cannot be met by the two maps agreeing on a wrong unloading
-    "R4": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading", lambda_cycle=1.0),
-    # R4 with a mean teacher: the reconstruction pass runs on the weight average (EMA, d = 0.99),
-    # which is also the model validated and saved
-    "R5": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="teacher", lambda_cycle=1.0,
-                  ema_decay=0.99),
+    "reverse-rampup": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10),
+    # reverse-rampup with the reconstruction pass as a fixed teacher for the cycle term (stop-gradient):
+    # the cycle moves only the unloading prediction; the reverse decoder learns from labelled pairs only
+    "fixed-teacher": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading"),
+    # fixed-teacher with the cycle term weighted like the supervised one (λ_cycle = 1): with the teacher
+    # fixed, a larger weight cannot be met by the two maps agreeing on a wrong unloading
+    "fixed-teacher-full-cycle": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="unloading",
+                                        lambda_cycle=1.0),
+    # fixed-teacher-full-cycle with a mean teacher: the reconstruction pass runs on the weight average
+    # (EMA, d = 0.99), which is also the model validated and saved
+    "mean-teacher": replace(PAPER, reverse_weight=1.0, cycle_rampup_epochs=10, cycle_grad="teacher",
+                            lambda_cycle=1.0, ema_decay=0.99),
     "pca": replace(PAPER, kind="pca", cycle=False),
 }
+# The coded names of the paper's ablation (A) and baseline (C) tables and of our cycle variants (R):
+# `--config` accepts them, and the ablation tables print them beside the names.
+CODES: dict[str, str] = {"A1": "no-cycle", "A2": "concat-fusion", "A3": "no-pooling", "A4": "gcn",
+                         "A5": "broadcast-fusion", "C0": "gatv2", "C2": "sage", "C5": "gat-decoder",
+                         "C6": "max-pooling", "R1": "reverse", "R2": "reverse-rampup", "R3": "fixed-teacher",
+                         "R4": "fixed-teacher-full-cycle", "R5": "mean-teacher"}
 
 # `heartctl train` options that set one network field each: option → field
 OPTION_FIELDS = {"node-input": "node_features", "ema": "ema_decay", "dropout": "dropout",
@@ -212,24 +219,40 @@ class Preset:
 
 # recommended: the lowest measured error (docs/training.md, "Which configuration to use")
 PRESETS: dict[str, Preset] = {
-    "recommended": Preset(replace(BASE_CONFIGS["A1"], **_RESPONSE_D0), (("scale_pct", 8.0), ("lr_schedule", "cosine"))),
+    "recommended": Preset(replace(BASE_CONFIGS["no-cycle"], **_RESPONSE_D0),
+                          (("scale_pct", 8.0), ("lr_schedule", "cosine"))),
 }
-# Compatibility: the coded names of earlier releases (benchmark tables, run directories), each a
-# base plus settings; accepted by --config and resolved when a checkpoint names one.
+# Compatibility: the coded names of the benchmark tables and run directories, each a base plus
+# settings; accepted by --config and resolved when a checkpoint names one.
 ALIASES: dict[str, tuple[str, dict]] = {
-    "A1ema": ("A1", {"ema_decay": 0.99}),
-    "A1ema-wall": ("A1", {"ema_decay": 0.99, "node_features": "wall"}),
-    "A1ema-wall-d0": ("A1", {"ema_decay": 0.99, "node_features": "wall", "dropout": 0.0}),
-    "A1ema-wall-d0-load": ("A1", {"ema_decay": 0.99, "node_features": "wall", "dropout": 0.0, "output_scale": "load"}),
-    "A1ema-resp-d0": ("A1", _RESPONSE_D0),
-    "A1ema-resp-d0-load": ("A1", {**_RESPONSE_D0, "output_scale": "load"}),
-    "A1ema-resp-d0-gcn": ("A1", {**_RESPONSE_D0, "conv": "gcn"}),
-    "R5-resp-d0": ("R5", {"node_features": "wall-response", "dropout": 0.0, "cycle_rampup_epochs": 2}),
+    **{code: (name, {}) for code, name in CODES.items()},
+    "A1ema": ("no-cycle", {"ema_decay": 0.99}),
+    "A1ema-wall": ("no-cycle", {"ema_decay": 0.99, "node_features": "wall"}),
+    "A1ema-wall-d0": ("no-cycle", {"ema_decay": 0.99, "node_features": "wall", "dropout": 0.0}),
+    "A1ema-wall-d0-load": ("no-cycle", {"ema_decay": 0.99, "node_features": "wall", "dropout": 0.0,
+                                        "output_scale": "load"}),
+    "A1ema-resp-d0": ("no-cycle", _RESPONSE_D0),
+    "A1ema-resp-d0-load": ("no-cycle", {**_RESPONSE_D0, "output_scale": "load"}),
+    "A1ema-resp-d0-gcn": ("no-cycle", {**_RESPONSE_D0, "conv": "gcn"}),
+    "R5-resp-d0": ("mean-teacher", {"node_features": "wall-response", "dropout": 0.0, "cycle_rampup_epochs": 2}),
 }
-CONFIG_HELP = ("Base network: paper (default) | multitoken | A1 (no cycle) A2 (concat fusion) A3 (no pooling) "
-               "A4 (GCN) A5 (parameters broadcast) | C0 (GATv2) C2 (GraphSAGE) C5 (GAT decoder) C6 (max pool) | "
-               "R1–R5 (cycle variants) | pca | recommended (A1 + node-input response, ema 0.99, dropout 0, with "
-               "`scale_pct` 8 `lr_schedule` cosine). Options below change it (docs/training.md: Configurations).")
+CONFIG_HELP = ("Base network: paper (default) | multitoken | no-cycle, concat-fusion, no-pooling, gcn, "
+               "broadcast-fusion (the paper's ablations A1–A5) | gatv2, sage, gat-decoder, max-pooling (its "
+               "baselines C0, C2, C5, C6) | reverse, reverse-rampup, fixed-teacher, fixed-teacher-full-cycle, "
+               "mean-teacher (cycle variants R1–R5) | pca | recommended (no-cycle + node-input response, ema 0.99, "
+               "dropout 0, with `scale_pct` 8 `lr_schedule` cosine). The codes are accepted too. Options below "
+               "change it (docs/training.md: Configurations).")
+
+
+def canonical_name(name: str) -> str:
+    """The descriptive name of a coded base configuration (A1 → no-cycle); any other name as given."""
+    key = str(name).strip()
+    return next((v for k, v in CODES.items() if k.lower() == key.lower()), key)
+
+
+def code_of(name: str) -> str:
+    """The paper-table code of a base configuration's name (no-cycle → A1), or "" if it has none."""
+    return next((k for k, v in CODES.items() if v == canonical_name(name)), "")
 
 
 def _lookup(name) -> Preset | None:
@@ -346,7 +369,7 @@ def _shown(field: str, value) -> str:
 
 def describe_model(model: ModelConfig) -> str:
     """The network in the terms of the train options: the nearest base configuration and what differs
-    from it, e.g. "A1 + node-input response, ema 0.99, dropout 0" (options first, `--set` keys after)."""
+    from it, e.g. "no-cycle + node-input response, ema 0.99, dropout 0" (options first, `--set` keys after)."""
     compared = ([f.name for f in fields(ModelConfig)] if model.kind == "gnn" else ["pca_components", "pca_ridge"])
 
     def differences(base: ModelConfig) -> list:

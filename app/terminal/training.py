@@ -159,7 +159,8 @@ def print_ablation(result: dict, store: str, root: Path, split: str, sr: float, 
     for r in rows:
         cells = [f"[bold]{r[k]:.3f}[/bold]" if result["best"][k] == r["config"] else f"{r[k]:.3f}"
                  for k, _, _ in TABLE_METRICS]
-        table.add_row(r["config"], *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
+        label = f"{r['config']} ({r['code']})" if r.get("code") else r["config"]
+        table.add_row(label, *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
     con = Console(width=160)
     con.print(table)
     for name, rivals in KEY_COMPARISONS:

@@ -156,7 +156,7 @@ class ParameterEncoder(nn.Module):
 
 
 class ConcatFusion(nn.Module):
-    r"""Ablation A2: h_i ← LN(h_i + W [h_i ‖ g_param]) instead of cross-attention."""
+    r"""The concat-fusion ablation (the paper's A2): h_i ← LN(h_i + W [h_i ‖ g_param]) instead of cross-attention."""
 
     def __init__(self, dim: int):
         super().__init__()
@@ -184,7 +184,7 @@ class MLPDecoder(nn.Module):
 
 
 class GATDecoder(nn.Module):
-    """Baseline C5: two GAT layers (4 heads of 64, then 1 head of 3) instead of the MLP."""
+    """The gat-decoder baseline (the paper's C5): two GAT layers (4 heads of 64, then 1 head of 3) instead of the MLP."""
 
     def __init__(self, dim: int, dropout: float = 0.1, hidden: int = 64, heads: int = 4, gat_kernel: str = "sparse"):
         super().__init__()
