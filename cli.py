@@ -360,7 +360,7 @@ def evaluate(run: list[Path] = typer.Option(..., "--run", help="Run directory (h
     with failures():
         report = evaluate_run(run[0], store, split, device, out, plots, rotations=rotations, members=run[1:],
                               reference=reference)
-    print_evaluation(report, split, store, as_json)
+    print_evaluation(report, store, as_json)
 
 
 @bench_app.command("model")

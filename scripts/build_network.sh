@@ -18,9 +18,11 @@ mkdir -p "$WORK"
 
 # The training box: the paper's (P 4–14 mmHg, C 50–300 Pa, helix 60–70 / −60…−70°), ~350-node meshes of the
 # shape model (version 2). Pretraining: 60 shapes of seed 1, `fast` labels, helix at the box's four corners.
-# Fine-tuning: REF_SHAPES shapes of seed 0, `reference` labels, the same grid. Held out: seed 0 from shape 20 on.
+# Fine-tuning: REF_SHAPES shapes of seed 0, `reference` labels (27 s a pair on one core), the same pressures and
+# stiffnesses at the helix box's centre: the labels' budget goes to more shapes. Held out: seed 0 from shape 20 on.
 REF_SHAPES=${REF_SHAPES:-12}
 GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
+REF_GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 65 --epi=-65 --nodes 350 --num-cpus "$CPUS")
 
 want() { [[ " $STEPS " == *" $1 "* ]]; }
 
@@ -29,8 +31,8 @@ if want fast; then
     $HEARTCTL generate --shapes 60 --seed 1 "${GRID[@]}" --fidelity fast --store "$WORK/fast.zarr"
 fi
 if want reference; then
-    echo "== reference labels for fine-tuning: $REF_SHAPES shapes (seed 0) × 3 P × 3 C × 2 × 2 helix"
-    $HEARTCTL generate --shapes "$REF_SHAPES" --seed 0 "${GRID[@]}" --fidelity reference --store "$WORK/reference.zarr"
+    echo "== reference labels for fine-tuning: $REF_SHAPES shapes (seed 0) × 3 P × 3 C, helix 65 / −65°"
+    $HEARTCTL generate --shapes "$REF_SHAPES" --seed 0 "${REF_GRID[@]}" --fidelity reference --store "$WORK/reference.zarr"
 fi
 if want pretrain; then
     echo "== pretraining on the fast labels"

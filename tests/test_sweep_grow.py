@@ -176,5 +176,5 @@ def test_a_run_trained_on_the_smaller_store_is_evaluated_on_it_grown_not_resumed
     with pytest.raises(TrainerError, match="grew from 4 to 5 shapes; train on the grown store with a new `run_dir`"):
         fit(replace(cfg, epochs=2), tmp_path / "run")
     again = evaluate_run(tmp_path / "run", loc, "test", plots=False)
-    assert again["summary"]["cases"] == scored["summary"]["cases"] == 4
-    assert again["summary"]["md_mm"] == scored["summary"]["md_mm"]  # the same cases, the same answers
+    assert again.cases == scored.cases == 4
+    assert again.mean("md_mm") == scored.mean("md_mm")  # the same cases, the same answers

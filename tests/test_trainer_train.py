@@ -252,7 +252,7 @@ def test_evaluate_equals_hand_computed_metrics(store, tmp_path):
         d01.append((e < 0.1).mean())
         dists = np.sqrt(((guess[:, None, :] - cases.unloaded[k][None, :, :]) ** 2).sum(axis=2))
         hd.append(max(dists.min(axis=1).max(), dists.min(axis=0).max()))
-    s = report["summary"]
+    s = report.as_dict()
     assert s["cases"] == len(keys)
     assert s["md_mm"] == pytest.approx(np.mean(md), rel=1e-6)
     assert s["sd_mm"] == pytest.approx(np.mean(sd), rel=1e-6)
@@ -270,10 +270,10 @@ def test_evaluate_prices_the_linear_response_of_networks_that_take_it(store, tmp
     run = tmp_path / "resp"
     fit(_cfg(store, config_name="resp-small", model=replace(SMALL, node_features="wall-response"), epochs=1), run)
     report = evaluate_run(run, store, "test", plots=False)
-    assert report["response_ms_per_mesh"] > 0 and report["summary"]["md_mm"] > 0
+    assert report.response_ms_per_mesh > 0 and report.mean("md_mm") > 0
     plain = tmp_path / "plain"
     fit(_cfg(store, epochs=1), plain)
-    assert evaluate_run(plain, store, "test", plots=False)["response_ms_per_mesh"] is None
+    assert evaluate_run(plain, store, "test", plots=False).response_ms_per_mesh is None
 
 
 def test_compiled_training_learns_what_eager_training_learns(store, tmp_path, monkeypatch):
@@ -356,7 +356,7 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
         Predictor(load_run(run), rotations=4)
     r = evaluate_run(run, store, "test", plots=False)
     # the synthetic displacement is smooth and low-dimensional: the baseline should get close
-    assert r["summary"]["md_mm"] < 0.5 and r["summary"]["cases"] > 0
+    assert r.mean("md_mm") < 0.5 and r.cases > 0
     from trainer.network.pca import RIDGE_GRID, PCABaseline
     fitted = load_run(run)["best_model"]
     assert float(fitted["ridge"]) in RIDGE_GRID  # chosen on the validation cases

@@ -3,10 +3,14 @@ or on Ray with its refusals as one line, and the summaries and tables they print
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from .console import failures, json_line, say, stop_on_sigterm
+
+if TYPE_CHECKING:
+    from trainer.evaluation.evaluate import Evaluation
 
 RESUME_TRAINING = "interrupted; rerun the same command to resume from the last checkpoint"
 
@@ -56,30 +60,22 @@ def print_training(summary: dict, config: str, kind: str, run_dir: Path, as_json
                + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
 
 
-def print_evaluation(report: dict, split: str, store: str, as_json: bool) -> None:
+def print_evaluation(report: Evaluation, store: str, as_json: bool) -> None:
     """An evaluation: one strict JSON object, or the metrics table (against the labels, and the
     converged solution when there is a reference), the configuration, timings and files written."""
     if as_json:
-        typer.echo(json_line({**report["summary"], "nn_md_mm": report["nn_md_mm"],
-                               "ms_per_case_batched": report["ms_per_case_batched"],
-                               "response_ms_per_mesh": report["response_ms_per_mesh"], "split": split,
-                               "config": report["config"], "configuration": report["configuration"],
-                               "rotations": report["rotations"],
-                               "members": report["members"], "labels_fidelity": report["labels_fidelity"],
-                               "unfinished_runs": report["unfinished_runs"],
-                               **({"reference": report["reference"]} if "reference" in report else {})}))
+        typer.echo(json_line(report.as_dict()))
         return
     from rich.console import Console
     from rich.table import Table
 
-    for u in report["unfinished_runs"]:
+    for u in report.unfinished_runs:
         typer.echo(f"warning: run {u['run']} is unfinished: it stopped at epoch {u['epoch']} of {u['epochs']} (killed, "
                    f"or still training); `heartctl train` with the same --run-dir finishes it", err=True)
-    agg = report["aggregate"]
-    ref = report.get("reference")
-    table = Table(title=f"{report['config']} on {report['summary']['cases']} {split} cases of {store}")
+    ref, net = report.reference, report.network
+    table = Table(title=f"{net.config} on {report.cases} {report.split} cases of {store}")
     table.add_column("metric")
-    table.add_column(f"vs its labels ({report['labels_fidelity']}), mean ± SD", justify="right")
+    table.add_column(f"vs its labels ({report.labels_fidelity}), mean ± SD", justify="right")
     table.add_column("cm", justify="right")
     if ref:
         table.add_column(f"vs converged ({ref['fidelity']}, {ref['cases']} cases)", justify="right")
@@ -87,7 +83,7 @@ def print_evaluation(report: dict, split: str, store: str, as_json: bool) -> Non
     for key, name, cm in (("dsc_1mm", "DSC @ 1 mm", False), ("dsc_01mm", "DSC @ 0.1 mm", False),
                           ("hd_mm", "HD (mm)", True), ("md_mm", "MD (mm)", True), ("sd_mm", "SD (mm)", True),
                           ("nn_md_mm", "MD, nearest node (mm)", True), ("max_mm", "max node error (mm)", True)):
-        m, s = agg[key]
+        m, s = report.aggregate[key]
         cells = [name, f"{m:.4f} ± {s:.4f}", f"{m / 10:.4f}" if cm else ""]
         if ref:
             cells += [f"{ref[who][key][0]:.4f} ± {ref[who][key][1]:.4f}" if key in ref[who] else ""
@@ -95,19 +91,18 @@ def print_evaluation(report: dict, split: str, store: str, as_json: bool) -> Non
         table.add_row(*cells)
     con = Console(width=200)
     con.print(table)
-    configurations = report["configuration"]
-    for i, line in enumerate(configurations):
-        con.print(f"configuration{f' of member {i + 1}' if len(configurations) > 1 else ''}: {line}", markup=False)
-    con.print(f"inference: {report['summary']['ms_per_case']:.2f} ms per case at batch 1, "
-              f"{report['ms_per_case_batched']:.3f} ms per case at batch {report['batch_size']} ({report['device']})"
-              + (f", each the mean of {report['rotations']} turns about the long axis" if report["rotations"] > 1 else ""))
-    if report["response_ms_per_mesh"] is not None:
-        con.print(f"  + the linear FE response (node input): {report['response_ms_per_mesh']:.0f} ms per mesh on the CPU, "
+    for i, line in enumerate(net.configuration):
+        con.print(f"configuration{f' of member {i + 1}' if net.members > 1 else ''}: {line}", markup=False)
+    con.print(f"inference: {report.ms_per_case:.2f} ms per case at batch 1, "
+              f"{report.ms_per_case_batched:.3f} ms per case at batch {report.batch_size} ({net.device})"
+              + (f", each the mean of {net.rotations} turns about the long axis" if net.rotations > 1 else ""))
+    if report.response_ms_per_mesh is not None:
+        con.print(f"  + the linear FE response (node input): {report.response_ms_per_mesh:.0f} ms per mesh on the CPU, "
                   f"once for all the parameter sets a mesh is unloaded at")
-    worst = max(report["by_parameter"], key=lambda r: r["md_mm_mean"])
+    worst = report.worst_parameter
     con.print(f"per parameter value: worst MD {worst['md_mm_mean']:.3f} mm at {worst['parameter']} = {worst['value']:g} "
               f"({worst['cases']} cases); see by_parameter.csv")
-    con.print(f"wrote {', '.join(report['files'])} to {report['out_dir']}")
+    con.print(f"wrote {', '.join(report.files)} to {report.out_dir}")
 
 
 def print_model_bench(r: dict, as_json: bool) -> None:

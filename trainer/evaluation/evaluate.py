@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +17,81 @@ from trainer.errors import TrainerError
 from trainer.data.store_cases import check_fingerprint, open_reader, read_store, store_fingerprint
 from trainer.data.features import MeshFeatures
 from trainer.files import write_csv, write_json
-from trainer.evaluation.metrics import METRIC_KEYS, aggregate, case_metrics, nodewise_error
+from trainer.evaluation.metrics import aggregate, case_metrics, nodewise_error
 from trainer.evaluation.predict import Ensemble, Predictor
 from trainer.evaluation.reference import check_reference_fidelity, match_reference, reference_rows, reference_summary
 
 SPLITS = ("test", "val", "train", "all")
+HEADLINE = ("dsc_1mm", "dsc_01mm", "hd_mm", "md_mm", "sd_mm")  # the metrics of the paper's table
+
+
+@dataclass(frozen=True)
+class EvaluatedNetwork:
+    """What was evaluated: the configuration of each ensemble member (describe_run), their joint
+    name, gnn or pca, the device, and the test-time turns about the long axis."""
+
+    config: str
+    configuration: list
+    kind: str
+    device: str
+    members: int
+    rotations: int
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """A run's (or an ensemble's) scores on a split of a store. Distances in mm, DSC as fractions of
+    nodes, times in ms.
+
+    aggregate: metric → (mean, SD over cases) against the store's own labels (`labels_fidelity`)
+    reference: the same against the converged solution, when a reference store was given
+        (trainer.evaluation.reference.reference_summary), else None
+    rows: one metrics row per case (cases.csv); by_parameter: the means per parameter value
+    ms_per_case: the network alone, batch 1; ms_per_case_batched at `batch_size`;
+    response_ms_per_mesh: the linear FE response, once per mesh, for networks that take it (else None)
+    unfinished_runs: {"run", "epoch", "epochs"} of members whose training had not finished
+    out_dir, files: where the artefacts went"""
+
+    split: str
+    network: EvaluatedNetwork
+    aggregate: dict
+    rows: list
+    by_parameter: list
+    ms_per_case: float
+    ms_per_case_batched: float
+    batch_size: int
+    response_ms_per_mesh: float | None
+    labels_fidelity: str | None
+    unfinished_runs: list
+    reference: dict | None
+    out_dir: str
+    files: list
+
+    @property
+    def cases(self) -> int:
+        return len(self.rows)
+
+    def mean(self, metric: str) -> float:
+        """The mean over cases of `metric` (a key of `aggregate`, e.g. md_mm) against the labels."""
+        return self.aggregate[metric][0]
+
+    @property
+    def worst_parameter(self) -> dict:
+        """The by_parameter row with the largest mean MD."""
+        return max(self.by_parameter, key=lambda r: r["md_mm_mean"])
+
+    def as_dict(self) -> dict:
+        """The headline figures and facts as one JSON object (`evaluate --json`, summary.json adds
+        `aggregate`): the HEADLINE means, ms per case, cases, then the rest."""
+        n = self.network
+        return {**{k: self.mean(k) for k in HEADLINE}, "ms_per_case": self.ms_per_case, "cases": self.cases,
+                "nn_md_mm": self.mean("nn_md_mm"), "ms_per_case_batched": self.ms_per_case_batched,
+                "batch_size": self.batch_size, "response_ms_per_mesh": self.response_ms_per_mesh, "split": self.split,
+                "rotations": n.rotations, "members": n.members, "config": n.config, "kind": n.kind,
+                "configuration": n.configuration, "device": n.device,
+                "sd_over_cases": {k: v[1] for k, v in self.aggregate.items()},
+                "labels_fidelity": self.labels_fidelity, "unfinished_runs": self.unfinished_runs,
+                **({"reference": self.reference} if self.reference is not None else {})}
 
 
 def _keys_for(state: dict, split: str) -> list | None:
@@ -59,7 +130,7 @@ def _member(run_dir: Path, first: dict, split: str, keys, device: str, rotations
 
 def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_dir=None, plots: bool = True,
                  batch_size: int = 32, timing_cases: int = 50, rotations: int = 1, members=(),
-                 reference=None) -> dict:
+                 reference=None) -> Evaluation:
     """Predict every case of the split and compare with the FE unloaded geometry (mm); `rotations`:
     test-time averaging over turns about the long axis (Predictor); `members`: more run directories
     whose networks are averaged with run_dir's (Ensemble). They must have been trained on the same
@@ -98,32 +169,28 @@ def evaluate_run(run_dir, store, split: str = "test", device: str = "cpu", out_d
         for r in rows:
             r.update(ref_rows.get((r["shape_id"], r["case"]), nan_row))
     agg = aggregate(rows)
-    summary = {"dsc_1mm": agg["dsc_1mm"][0], "dsc_01mm": agg["dsc_01mm"][0], "hd_mm": agg["hd_mm"][0],
-               "md_mm": agg["md_mm"][0], "sd_mm": agg["sd_mm"][0], "ms_per_case": single_ms, "cases": len(rows)}
-    extras = {"nn_md_mm": agg["nn_md_mm"][0], "ms_per_case_batched": batched_ms, "batch_size": batch_size,
-              "response_ms_per_mesh": response_ms, "split": split, **_network_facts(pred),
-              "sd_over_cases": {k: agg[k][1] for k in METRIC_KEYS},
-              "labels_fidelity": cases.attrs.get("fidelity"), "unfinished_runs": unfinished}
-    if matches is not None:
-        extras["reference"] = reference_summary(ref_rows, reference, ref_cases, cases.attrs.get("fidelity"))
-    by_param = _by_parameter(rows)
+    scored = Evaluation(
+        split=split, network=_network_facts(pred), aggregate=agg,
+        rows=rows, by_parameter=_by_parameter(rows), ms_per_case=single_ms, ms_per_case_batched=batched_ms,
+        batch_size=batch_size, response_ms_per_mesh=response_ms, labels_fidelity=cases.attrs.get("fidelity"),
+        unfinished_runs=unfinished, out_dir=str(out_dir), files=[],
+        reference=None if matches is None else reference_summary(ref_rows, reference, ref_cases,
+                                                                  cases.attrs.get("fidelity")))
     median = int(np.argsort([r["md_mm"] for r in rows])[len(rows) // 2])
 
     def write(folder: Path) -> list:
         for name in ARTEFACTS:  # an earlier evaluation's files go first, its summary.json before the rest
             (folder / name).unlink(missing_ok=True)
         write_csv(folder / "cases.csv", rows)
-        write_csv(folder / "by_parameter.csv", by_param)
+        write_csv(folder / "by_parameter.csv", scored.by_parameter)
         files = ["cases.csv", "by_parameter.csv"]
         files += _error_map_vtu(folder, store, keys[median], cases.ed(keys[median]) + disps[median], errors[median])
         if plots:
             files += _plots(folder, errors, rows[median], items[median][0], errors[median], state.get("history", []))
-        write_json(folder / "summary.json", {**summary, **extras, "aggregate": agg})  # last: marks a complete evaluation
+        write_json(folder / "summary.json", {**scored.as_dict(), "aggregate": agg})  # last: marks a complete evaluation
         return files + ["summary.json"]
 
-    files = _write_artefacts(out_dir, write)
-    return {"summary": summary, **extras, "aggregate": agg, "by_parameter": by_param, "rows": rows,
-            "out_dir": str(out_dir), "files": files}
+    return replace(scored, files=_write_artefacts(out_dir, write))
 
 
 def _evaluated_cases(state: dict, store, split: str, keys: list | None):
@@ -154,11 +221,11 @@ def _case_rows(cases, keys: list, items: list, disps: list) -> tuple[list, list,
     return rows, errors, guesses
 
 
-def _network_facts(pred) -> dict:
+def _network_facts(pred) -> EvaluatedNetwork:
     """What was evaluated: test-time rotations, ensemble members, their configurations, the device."""
-    return {"rotations": pred.rotations, "members": len(pred.members),
-            "config": " + ".join(m.cfg.config_name for m in pred.members), "kind": pred.kind,
-            "configuration": [describe_run(m.cfg) for m in pred.members], "device": str(pred.device)}
+    return EvaluatedNetwork(config=" + ".join(m.cfg.config_name for m in pred.members),
+                            configuration=[describe_run(m.cfg) for m in pred.members], kind=pred.kind,
+                            device=str(pred.device), members=len(pred.members), rotations=pred.rotations)
 
 
 def _response_ms_per_mesh(pred, feat, repeats: int = 3) -> float | None:
