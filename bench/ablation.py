@@ -95,9 +95,9 @@ def row_from_run(cfg: TrainConfig, run_dir: Path, device: str = "cpu", log=print
     summary = fit(cfg, run_dir, Dist(device=torch.device(device), log=log), bundle=bundle)
     report = evaluate_run(run_dir, cfg.store, "test", device, plots=False)
     return {**{k: report.mean(k) for k in ("md_mm", "hd_mm", "sd_mm", "dsc_1mm", "dsc_01mm")},
-            "ms_per_case": report.ms_per_case, "cases": report.cases, "nn_md_mm": report.mean("nn_md_mm"), "epochs": summary["epoch"], "best_epoch": summary["best_epoch"],
-            "parameters": summary["n_parameters"], "labelled_cases": summary["labelled_cases"],
-            "train_cases": summary["train_cases"]}
+            "ms_per_case": report.ms_per_case, "cases": report.cases, "nn_md_mm": report.mean("nn_md_mm"), "epochs": summary.epoch, "best_epoch": summary.best_epoch,
+            "parameters": summary.n_parameters, "labelled_cases": summary.labelled_cases,
+            "train_cases": summary.train_cases}
 
 
 def run_ablation_seeds(base: TrainConfig, configs: list, seeds: list, root: Path, device: str = "cpu",

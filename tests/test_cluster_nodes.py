@@ -193,7 +193,7 @@ def test_ray_train_loses_a_node_and_resumes_from_its_last_checkpoint(cluster, tm
         summary = train_with_ray(cfg, run, gpus=0, cpu_workers=2, max_failures=2)
     assert killed and not isinstance(killed[0], Exception), killed
     assert killed[0] < cfg.epochs, f"the node died after the run's last epoch ({killed})"
-    assert summary["epoch"] == cfg.epochs and summary["workers"] == 2 and summary["backend"] == "gloo"
+    assert summary.epoch == cfg.epochs and summary.workers == 2 and summary.backend == "gloo"
     assert any(p.name.startswith("checkpoint_") for p in (run / "ray").iterdir())
     lost, whole = load_run(run), load_run(whole)
     assert [h["epoch"] for h in lost["history"]] == list(range(1, cfg.epochs + 1))

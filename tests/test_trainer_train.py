@@ -45,14 +45,14 @@ def _rows(path):
 def test_plain_loop_checkpoints_and_resumes(store, tmp_path):
     run = tmp_path / "run"
     s = fit(_cfg(store), run)
-    assert s["epoch"] == 2 and s["resumed_from"] == 0
+    assert s.epoch == 2 and s.resumed_from == 0
     state = load_run(run)
     assert state["epoch"] == 2 and state["kind"] == "gnn"
     assert {"model", "best_model", "optimizer", "scheduler", "normalisation", "train_config", "split"} <= set(state)
     assert len(_rows(run / "metrics.csv")) == 2
     assert set(_rows(run / "metrics.csv")[0]) >= {"epoch", "train_loss", "val_loss", "val_md_mm", "lr"}
     s = fit(_cfg(store, epochs=3), run)
-    assert s["resumed_from"] == 2 and s["epoch"] == 3 and s["epochs_run"] == 1
+    assert s.resumed_from == 2 and s.epoch == 3 and s.epochs_run == 1
     assert [int(r["epoch"]) for r in _rows(run / "metrics.csv")] == [1, 2, 3]
     assert load_run(run)["epoch"] == 3
     with pytest.raises(TrainerError, match=r"started with sr 1.0 \(this command: 0.5\)"):
@@ -80,7 +80,7 @@ def test_resume_removes_the_temporary_files_of_a_save_cut_short(store, tmp_path)
         path.write_bytes(b"mine")
     logged = []
     s = fit(_cfg(store, epochs=2), run, Dist(log=logged.append))
-    assert s["resumed_from"] == 1 and load_run(run)["epoch"] == 2
+    assert s.resumed_from == 1 and load_run(run)["epoch"] == 2
     assert not any(p.exists() for p in stale) and all(p.exists() for p in kept)
     assert any("removed 2 temporary checkpoint file(s)" in line for line in logged), logged
 
@@ -90,10 +90,10 @@ def test_resume_obeys_a_new_patience_and_learning_rate(store, tmp_path):
     resumed epochs use (the plateau schedule would otherwise keep the saved one)."""
     run = tmp_path / "stop"
     s = fit(_cfg(store, epochs=8, patience=1, lr=0.1), run)  # a rate this high stops it within a few epochs
-    assert s["stopped_early"] and s["epoch"] < 8
-    assert fit(_cfg(store, epochs=8, patience=1, lr=0.1), run)["epochs_run"] == 0  # same patience: stays stopped
-    s2 = fit(_cfg(store, epochs=s["epoch"] + 1, patience=50, lr=3e-4), run)
-    assert s2["epochs_run"] == 1 and s2["epoch"] == s["epoch"] + 1
+    assert s.stopped_early and s.epoch < 8
+    assert fit(_cfg(store, epochs=8, patience=1, lr=0.1), run).epochs_run == 0  # same patience: stays stopped
+    s2 = fit(_cfg(store, epochs=s.epoch + 1, patience=50, lr=3e-4), run)
+    assert s2.epochs_run == 1 and s2.epoch == s.epoch + 1
     assert float(_rows(run / "metrics.csv")[-1]["lr"]) == pytest.approx(3e-4)
 
 
@@ -145,7 +145,7 @@ def test_cosine_schedule_sets_each_epochs_rate(store, tmp_path):
     (run with the wall-coordinate model, which must train end to end too)."""
     model = replace(SMALL, node_features="wall", cycle=False, ema_decay=0.9)
     s = fit(_cfg(store, model=model, epochs=3, lr_schedule="cosine", lr=2e-3), tmp_path / "cos")
-    assert s["epoch"] == 3
+    assert s.epoch == 3
     rates = [float(r["lr"]) for r in _rows(tmp_path / "cos" / "metrics.csv")]
     assert rates == pytest.approx([cosine_lr(e, 3, 2e-3) for e in range(3)], rel=1e-6)
     assert rates[0] == pytest.approx(2e-3) and rates[0] > rates[1] > rates[2] > 2e-5
@@ -294,7 +294,7 @@ def test_compiled_training_learns_what_eager_training_learns(store, tmp_path, mo
         assert float(b[k]) == pytest.approx(float(a[k]), rel=1e-4)
     weights = load_run(tmp_path / "compiled")["best_model"]
     assert set(weights) == set(load_run(tmp_path / "eager")["best_model"])  # no "_orig_mod." prefixes
-    assert eager["epochs_run"] == compiled["epochs_run"] == 1
+    assert eager.epochs_run == compiled.epochs_run == 1
 
 
 def test_single_cases_go_through_one_prepared_runner_per_mesh(store, tmp_path):
@@ -397,7 +397,7 @@ def test_ray_train_resumes_a_plain_run_and_a_divergence_is_one_line(store, tmp_p
     # a rerun with nothing left to train reports nothing: the divergence marker Ray restores (its latest
     # checkpoint's metrics) is the earlier call's, not a new divergence, and the state it resumes from
     # is the run's, not the marker (a run resumed through Ray and trained on: tests/test_cluster_nodes.py)
-    assert train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=1, max_failures=0)["epoch"] == 2
+    assert train_with_ray(_cfg(store, epochs=2), run, gpus=0, cpu_workers=1, max_failures=0).epoch == 2
     assert [h["epoch"] for h in load_run(run)["history"]] == [1, 2]
 
 

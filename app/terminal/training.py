@@ -11,11 +11,12 @@ from .console import failures, json_line, say, stop_on_sigterm
 
 if TYPE_CHECKING:
     from trainer.evaluation.evaluate import Evaluation
+    from trainer.training.summary import TrainingSummary
 
 RESUME_TRAINING = "interrupted; rerun the same command to resume from the last checkpoint"
 
 
-def run_training_here(cfg, run_dir: Path, placement) -> dict:
+def run_training_here(cfg, run_dir: Path, placement) -> TrainingSummary:
     """trainer.training.launch.train_in_process, its refusals and Ctrl-C (or SIGTERM) as one line."""
     from trainer.training.launch import train_in_process
 
@@ -24,7 +25,7 @@ def run_training_here(cfg, run_dir: Path, placement) -> dict:
         return train_in_process(cfg, run_dir, placement, log=lambda line: say(line, err=True))
 
 
-def run_training_on_ray(cfg, run_dir: Path, placement, where) -> dict:
+def run_training_on_ray(cfg, run_dir: Path, placement, where) -> TrainingSummary:
     """Ray Train within a ray_session (a local Ray, or the cluster joined): refusals, Ray that will not
     start and Ctrl-C exit 2 (130) in one line, a training that fails exits 1."""
     from orchestrator.ray_session import ray_session
@@ -37,27 +38,25 @@ def run_training_on_ray(cfg, run_dir: Path, placement, where) -> dict:
         with ray_session(where, **local_ray_options(workers if placement.local else None)):
             check_ray_resources(gpus, workers, where.address)
             stop_on_sigterm()  # after ray.init, whose driver installs its own handler
-            summary = train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=placement.max_failures)
-    summary["mode"] = f"Ray Train, {summary['workers']} {'GPU' if gpus else 'CPU'} worker(s), {summary['backend']}"
-    return summary
+            return train_with_ray(cfg, run_dir, gpus=gpus, cpu_workers=workers, max_failures=placement.max_failures)
 
 
-def print_training(summary: dict, config: str, kind: str, run_dir: Path, as_json: bool) -> None:
+def print_training(summary: TrainingSummary, config: str, kind: str, run_dir: Path, as_json: bool) -> None:
     """The run's summary: strict JSON, or one line (epochs, best validation MD, parameters, where)."""
     if as_json:
-        typer.echo(json_line(summary))
+        typer.echo(json_line(summary.as_dict()))
         return
-    best = summary.get("best_val_md_mm")
+    best = summary.best_val_md_mm
     if kind == "pca":
         typer.echo(f"{config}: fitted; "
                    + (f"validation MD {best:.3f} mm" if best is not None else "no validation cases")
-                   + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
+                   + f"; {summary.n_parameters or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
         return
-    typer.echo(f"{config}: {summary['epoch']} epochs ({summary['mode']}); "
-               + (f"best validation MD {best:.3f} mm at epoch {summary['best_epoch']}" if best is not None
-                  else f"no validation cases, kept epoch {summary['best_epoch']} (lowest training loss)")
-               + (", stopped early" if summary.get("stopped_early") else "")
-               + f"; {summary.get('n_parameters') or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
+    typer.echo(f"{config}: {summary.epoch} epochs ({summary.mode}); "
+               + (f"best validation MD {best:.3f} mm at epoch {summary.best_epoch}" if best is not None
+                  else f"no validation cases, kept epoch {summary.best_epoch} (lowest training loss)")
+               + (", stopped early" if summary.stopped_early else "")
+               + f"; {summary.n_parameters or 0:,} parameters → {run_dir / 'checkpoint.pt'}")
 
 
 def print_evaluation(report: Evaluation, store: str, as_json: bool) -> None:

@@ -7,11 +7,12 @@ workers would retry a refusal --max-failures times.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from trainer.config import TrainConfig
 from trainer.errors import TrainerError
+from trainer.training.summary import TrainingSummary
 
 
 @dataclass(frozen=True)
@@ -113,7 +114,7 @@ def _check_cuda(placement: Placement) -> None:
         raise TrainerError("`device` cuda: no CUDA device is available here")
 
 
-def train_in_process(cfg: TrainConfig, run_dir: Path, placement: Placement, log) -> dict:
+def train_in_process(cfg: TrainConfig, run_dir: Path, placement: Placement, log) -> TrainingSummary:
     """The plain PyTorch loop in this process (no Ray); the loop's summary with its `mode`."""
     import torch
 
@@ -121,5 +122,4 @@ def train_in_process(cfg: TrainConfig, run_dir: Path, placement: Placement, log)
 
     device = torch.device(placement.device or ("cuda" if torch.cuda.is_available() else "cpu"))
     summary = fit(cfg, Path(run_dir).resolve(), Dist(device=device, log=log))
-    summary["mode"] = "in-process" if cfg.model.kind != "pca" else "in-process (PCA fit, no Ray needed)"
-    return summary
+    return replace(summary, mode="in-process" if cfg.model.kind != "pca" else "in-process (PCA fit, no Ray needed)")

@@ -27,6 +27,7 @@ from trainer.files import write_csv, write_json
 from trainer.network.model import build_model, count_parameters, loss_terms
 from trainer.data.sampling import MixedBatchSampler, labelled_per_batch
 from trainer.training.schedule import cosine_lr
+from trainer.training.summary import TrainingSummary
 
 METRIC_COLUMNS = ("epoch", "train_loss", "train_sup", "train_cycle", "val_loss", "val_md_mm", "lr", "epoch_s",
                   "graphs_per_s")
@@ -235,7 +236,7 @@ def base_state(cfg: TrainConfig, bundle: DataBundle, kind: str) -> dict:
 
 
 def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
-        bundle: DataBundle | None = None) -> dict:
+        bundle: DataBundle | None = None) -> TrainingSummary:
     """Train (or resume) the configured model into run_dir; returns a summary dict.
 
     run_dir gets checkpoint.pt (model, best model, optimiser, scheduler, epoch, normalisation,
@@ -281,11 +282,11 @@ def fit(cfg: TrainConfig, run_dir: str | os.PathLike, dist: Dist | None = None,
         run.writer.close()
     s = run.standing
     done = len(s.history)
-    return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": done - s.start_epoch, "epoch": done,
-            "resumed_from": s.start_epoch, "best_epoch": s.best_epoch, "best_val_loss": s.best_val,
-            "best_val_md_mm": best_val_md(s.history, s.best_epoch),
-            "stopped_early": s.stopped, "n_parameters": run.n_params, "train_cases": len(bundle.train),
-            "labelled_cases": len(bundle.labelled), "wall_s": time.perf_counter() - t0}
+    return TrainingSummary(config=cfg.config_name, run_dir=str(run_dir), epochs_run=done - s.start_epoch, epoch=done,
+                           resumed_from=s.start_epoch, best_epoch=s.best_epoch, best_val_loss=s.best_val,
+                           best_val_md_mm=best_val_md(s.history, s.best_epoch), stopped_early=bool(s.stopped),
+                           n_parameters=run.n_params, train_cases=len(bundle.train),
+                           labelled_cases=len(bundle.labelled), wall_s=time.perf_counter() - t0)
 
 
 def _open_run_dir(cfg: TrainConfig, run_dir: Path, dist: Dist) -> None:
@@ -544,7 +545,7 @@ class _Training:
         return ckpt
 
 
-def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0: float) -> dict:
+def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0: float) -> TrainingSummary:
     from trainer.network.pca import PCABaseline
 
     c = bundle.cases
@@ -561,8 +562,8 @@ def _fit_pca(cfg: TrainConfig, run_dir: Path, bundle: DataBundle, dist: Dist, t0
                  f"({pca.s['disp_comps'].shape[0]} displacement components, ridge "
                  f"{float(np.ravel(pca.s['ridge'])[0]):g}{' chosen on the validation cases' if validation else ''})")
     val_md = pca.mean_distance_mm(c.features, c.params, validation, bundle.norm) if validation else None
-    return {"config": cfg.config_name, "run_dir": str(run_dir), "epochs_run": 1, "epoch": 1, "resumed_from": 0,
-            "best_epoch": 1, "best_val_loss": None, "best_val_md_mm": val_md, "stopped_early": False,
-            "n_parameters": int(sum(v.numel() for v in pca.state_dict().values())),
-            "train_cases": len(bundle.train), "labelled_cases": len(bundle.labelled),
-            "wall_s": time.perf_counter() - t0}
+    return TrainingSummary(config=cfg.config_name, run_dir=str(run_dir), epochs_run=1, epoch=1, resumed_from=0,
+                           best_epoch=1, best_val_loss=None, best_val_md_mm=val_md, stopped_early=False,
+                           n_parameters=int(sum(v.numel() for v in pca.state_dict().values())),
+                           train_cases=len(bundle.train), labelled_cases=len(bundle.labelled),
+                           wall_s=time.perf_counter() - t0)

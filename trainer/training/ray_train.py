@@ -16,6 +16,7 @@ from trainer.training.checkpoint import (CHECKPOINT_NAME, DiskFullError, check_r
                          load_checkpoint, remove_stale_temporaries, run_checkpoint_path, save_checkpoint)
 from trainer.config import TrainConfig
 from trainer.errors import TrainerError, TrainingDiverged
+from trainer.training.summary import TrainingSummary
 
 # A refusal that every rank reaches alike (the training loss diverged in the same epoch; the store
 # cannot be read or split on some worker) is told to the driver by a reported marker checkpoint (one
@@ -244,7 +245,7 @@ def _latest_checkpoint(result) -> dict | None:
 
 
 def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, cpu_workers: int = 2,
-                   max_failures: int = 2, threads_per_worker: int = 1) -> dict:
+                   max_failures: int = 2, threads_per_worker: int = 1) -> TrainingSummary:
     """Train on `gpus` GPU workers (NCCL), or `cpu_workers` CPU workers (gloo) when gpus == 0.
     Ray must be initialised by the caller. Re-running with the same run_dir resumes from the latest
     checkpoint (Ray's storage under run_dir/ray, or run_dir/checkpoint.pt, whichever is further).
@@ -313,8 +314,10 @@ def train_with_ray(cfg: TrainConfig, run_dir: str | os.PathLike, gpus: int = 0, 
     if refused:  # the run directory keeps the last checkpoint from before
         raise TrainerError(refused)
     hist = final.get("history", [])
-    return {"config": cfg.config_name, "run_dir": str(run_dir), "epoch": int(final["epoch"]),
-            "best_epoch": final.get("best_epoch"), "best_val_loss": final.get("best_val"),
-            "best_val_md_mm": best_val_md(hist, final.get("best_epoch")), "stopped_early": final.get("stopped_early"),
-            "n_parameters": final.get("n_parameters"), "workers": scaling.num_workers,
-            "backend": "nccl" if use_gpu else "gloo", "ray_storage": str(run_dir / RAY_RUN_NAME)}
+    backend = "nccl" if use_gpu else "gloo"
+    return TrainingSummary(config=cfg.config_name, run_dir=str(run_dir), epoch=int(final["epoch"]),
+                           best_epoch=final.get("best_epoch"), best_val_loss=final.get("best_val"),
+                           best_val_md_mm=best_val_md(hist, final.get("best_epoch")),
+                           stopped_early=bool(final.get("stopped_early")), n_parameters=final.get("n_parameters"),
+                           workers=scaling.num_workers, backend=backend, ray_storage=str(run_dir / RAY_RUN_NAME),
+                           mode=f"Ray Train, {scaling.num_workers} {'GPU' if use_gpu else 'CPU'} worker(s), {backend}")
