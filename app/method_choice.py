@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 from trainer.errors import TrainerError
@@ -11,17 +12,42 @@ from trainer.errors import TrainerError
 TRADE_FILE = "trade.json"
 
 
-def parse_method(name: str) -> dict:
-    """'hybrid accurate +2' → {"method": "hybrid", "preset": "accurate", "updates": 2}; 'fe adaptive 0.05' →
-    {"method": "fe", "preset": "adaptive", "tolerance_mm": 0.05}."""
+@dataclass(frozen=True)
+class Method:
+    """An unloading method as the trade table names it: `method` fe | gnn | hybrid; `preset` the FE
+    preset (None for gnn); `updates` a hybrid's inverse-update budget (None: to the tolerance);
+    `ensemble` whether a gnn row averages several networks; `tolerance_mm` the adaptive preset's."""
+
+    method: str
+    preset: str | None = None
+    updates: int | None = None
+    ensemble: bool = False
+    tolerance_mm: float | None = None
+
+
+def parse_method(name: str) -> Method:
+    """'hybrid accurate +2' → Method("hybrid", "accurate", updates=2); 'fe adaptive 0.05' →
+    Method("fe", "adaptive", tolerance_mm=0.05); 'gnn ensemble' → Method("gnn", ensemble=True)."""
     parts = name.split()
     if parts[0] == "gnn":
-        return {"method": "gnn", "preset": None, "updates": None, "ensemble": len(parts) > 1}
+        return Method("gnn", ensemble=len(parts) > 1)
     if parts[0] == "fe":
-        return {"method": "fe", "preset": parts[1], "updates": None, "ensemble": False,
-                "tolerance_mm": float(parts[2]) if len(parts) > 2 else None}
-    updates = None if parts[2] == "to" else int(parts[2].lstrip("+"))
-    return {"method": "hybrid", "preset": parts[1], "updates": updates, "ensemble": False}
+        return Method("fe", parts[1], tolerance_mm=float(parts[2]) if len(parts) > 2 else None)
+    return Method("hybrid", parts[1], updates=None if parts[2] == "to" else int(parts[2].lstrip("+")))
+
+
+@dataclass(frozen=True)
+class MethodChoice:
+    """The trade table's choice for `--method auto`: the row's name (`label`), what it runs, and what
+    it measured there: p95 and largest nodal error against the converged solution (mm), mean time
+    per case (s), on meshes of `nodes` nodes."""
+
+    label: str
+    run: Method
+    p95_mm: float
+    max_mm: float
+    time_mean_s: float
+    nodes: int
 
 
 def load_trade(run_dir: Path | str, table: Path | None = None) -> dict:
@@ -35,11 +61,10 @@ def load_trade(run_dir: Path | str, table: Path | None = None) -> dict:
         raise TrainerError(f"trade table {path} is not readable JSON ({exc})") from None
 
 
-def choose_method(trade: dict, tolerance_mm: float, n_nodes: int, with_ensemble: bool) -> dict:
+def choose_method(trade: dict, tolerance_mm: float, n_nodes: int, with_ensemble: bool) -> MethodChoice:
     """The cheapest method (mean time per case) whose p95 nodal error met `tolerance_mm` on every case
-    of the table, at the table's resolution nearest to `n_nodes`. Returns the summary row with the
-    parsed method ("label": the table's name, "method": fe | gnn | hybrid, "preset", "updates");
-    TrainerError (one line) when no method met it."""
+    of the table (bench.trade's JSON), at the table's resolution nearest to `n_nodes`; TrainerError
+    (one line) when no method met it."""
     if not (math.isfinite(tolerance_mm) and tolerance_mm > 0):
         raise TrainerError(f"`tolerance_mm` must be a finite number > 0, got {tolerance_mm}")
     summary = trade.get("summary") or []
@@ -56,4 +81,5 @@ def choose_method(trade: dict, tolerance_mm: float, n_nodes: int, with_ensemble:
         raise TrainerError(f"no method met {tolerance_mm:g} mm (p95 nodal error against the converged solution) on "
                            f"the trade table's {nodes[res]}-node meshes{hint}")
     best = min(meets, key=lambda s: s["time_mean_s"])
-    return {**best, "label": best["method"], **parse_method(best["method"])}
+    return MethodChoice(label=best["method"], run=parse_method(best["method"]), p95_mm=float(best["p95_mm"]),
+                        max_mm=float(best["max_mm"]), time_mean_s=float(best["time_mean_s"]), nodes=int(best["nodes"]))

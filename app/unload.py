@@ -6,6 +6,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .method_choice import MethodChoice
 
 METHODS = ("fe", "gnn", "hybrid", "auto")
 ADAPTIVE = "adaptive"  # the `fidelity` of solver.adaptive: accurate, refined locally to a tolerance
@@ -62,7 +66,7 @@ class UnloadRequest:
         if self.runs and self.method == "fe":
             raise ValueError("`run` applies to `method` gnn|hybrid|auto")
 
-    def plan(self, n_nodes: int) -> tuple[UnloadPlan, dict | None]:
+    def plan(self, n_nodes: int) -> tuple[UnloadPlan, MethodChoice | None]:
         """What to run on a mesh of `n_nodes` nodes, and for --method auto the trade table's row that
         chose it (its method, preset, inverse-update budget; the runs an ensemble needs)."""
         asked = {name: getattr(self, name) for name in TRAINED_CHOICES if name in self.given}
@@ -78,9 +82,10 @@ class UnloadRequest:
         from .method_choice import choose_method, load_trade
 
         choice = choose_method(load_trade(runs[0]), self.tolerance_mm, n_nodes, with_ensemble=len(runs) > 1)
-        runs = runs if choice["ensemble"] or choice["method"] != "gnn" else runs[:1]
-        return replace(plan, method=choice["method"], fidelity=choice["preset"] or self.fidelity, runs=runs,
-                       max_updates=choice["updates"], tolerance_mm=choice.get("tolerance_mm")), choice
+        chosen = choice.run
+        runs = runs if chosen.ensemble or chosen.method != "gnn" else runs[:1]
+        return replace(plan, method=chosen.method, fidelity=chosen.preset or self.fidelity, runs=runs,
+                       max_updates=chosen.updates, tolerance_mm=chosen.tolerance_mm), choice
 
 
 @dataclass(frozen=True)

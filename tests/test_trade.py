@@ -15,7 +15,7 @@ from solver.parameters import CaseParameters
 from solver.reinflate import reinflation_error
 from storage.meshfiles import write_mesh
 from trainer.errors import TrainerError
-from app.method_choice import choose_method, parse_method
+from app.method_choice import Method, choose_method, parse_method
 from bench.trade import TradeSpec, box_cases, held_out_cases, run_trade, write_report
 from trainer_fixtures import lv_mesh, make_tiny_store
 
@@ -107,19 +107,19 @@ def test_choose_method_cheapest_that_met_the_tolerance():
                     ("training", 300, "hybrid accurate +2", 2, 0.2, 1.0), ("training", 300, "fe accurate", 2, 0.15, 2.0),
                     ("training", 300, "hybrid fast +1", 1, 0.01, 0.1),  # failed a case: never chosen
                     ("user", 800, "gnn", 2, 0.1, 0.02), ("user", 800, "fe accurate", 2, 0.12, 5.0)])
-    assert choose_method(table, 0.25, 310, False)["method"] == "hybrid"
     pick = choose_method(table, 0.25, 310, False)
-    assert pick["preset"] == "accurate" and pick["updates"] == 2
-    assert choose_method(table, 0.7, 310, False)["method"] == "fe"
-    assert choose_method(table, 0.15, 900, False)["method"] == "gnn"  # the 800-node rows for a 900-node mesh
+    assert pick.run == Method("hybrid", "accurate", updates=2) and pick.label == "hybrid accurate +2"
+    assert (pick.p95_mm, pick.max_mm, pick.time_mean_s, pick.nodes) == (0.2, 0.4, 1.0, 300)
+    assert choose_method(table, 0.7, 310, False).run.method == "fe"
+    assert choose_method(table, 0.15, 900, False).run.method == "gnn"  # the 800-node rows for a 900-node mesh
     with pytest.raises(TrainerError, match="closest, fe accurate, reached 0.150 mm"):
         choose_method(table, 0.05, 310, False)
     with pytest.raises(TrainerError, match="tolerance"):
         choose_method(table, float("nan"), 310, False)
-    assert parse_method("hybrid fast to tol") == {"method": "hybrid", "preset": "fast", "updates": None,
-                                                  "ensemble": False}
+    assert parse_method("hybrid fast to tol") == Method("hybrid", "fast")
+    assert parse_method("gnn ensemble") == Method("gnn", ensemble=True)
     adaptive = choose_method(_table([("training", 300, "fe adaptive 0.05", 2, 0.04, 3.0)]), 0.05, 300, False)
-    assert (adaptive["method"], adaptive["preset"], adaptive["tolerance_mm"]) == ("fe", "adaptive", 0.05)
+    assert adaptive.run == Method("fe", "adaptive", tolerance_mm=0.05)
 
 
 def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):

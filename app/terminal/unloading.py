@@ -3,6 +3,7 @@ printed in one line (with `--check`, the answer inflated again)."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import typer
@@ -10,12 +11,15 @@ import typer
 from .console import failures, progress_of, say
 from .inputs import solve_budget, write_mesh_file
 
+if TYPE_CHECKING:
+    from app.method_choice import MethodChoice
 
-def print_auto_choice(choice: dict, tolerance_mm: float) -> None:
+
+def print_auto_choice(choice: MethodChoice, tolerance_mm: float) -> None:
     """`--method auto`: the trade table's choice and the error it expects."""
-    typer.echo(f"auto: {choice['label']} (p95 {choice['p95_mm']:.3f} mm, max {choice['max_mm']:.3f} mm against the "
-               f"converged solution on the trade table's {choice['nodes']}-node held-out meshes, "
-               f"{choice['time_mean_s']:.2f} s per case there; asked ≤ {tolerance_mm:g} mm)")
+    typer.echo(f"auto: {choice.label} (p95 {choice.p95_mm:.3f} mm, max {choice.max_mm:.3f} mm against the "
+               f"converged solution on the trade table's {choice.nodes}-node held-out meshes, "
+               f"{choice.time_mean_s:.2f} s per case there; asked ≤ {tolerance_mm:g} mm)")
 
 
 def print_check(lv, unloaded, params, fidelity: str, base: str, fibres: str) -> None:
