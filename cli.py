@@ -136,7 +136,7 @@ def verify(problem: Problem = typer.Option(Problem.all, "--problem", help="Land 
              "(bench convergence measures refinement)")
     names = ["land1", "land2"] if problem is Problem.all else [problem.value]
     for name in names:
-        print_land(name, (land1 if name == "land1" else land2)(fidelity.value), fidelity.value, as_json)
+        print_land((land1 if name == "land1" else land2)(fidelity.value), as_json)
 
 
 @bench_app.command("solver")

@@ -37,7 +37,7 @@ fi
 if want pretrain; then
     echo "== pretraining on the fast labels"
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/fast.zarr" \
-        --run-dir "$WORK/pretrained" --epochs 40
+        --run-dir "$WORK/pretrained" --epochs 20
 fi
 if want finetune; then
     echo "== fine-tuning on the reference labels"

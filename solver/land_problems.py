@@ -3,6 +3,7 @@ published reference values (../shared/reference/land2015.md). Units: mm, Pa (kPa
 from __future__ import annotations
 
 import time
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from skfem import MeshTet
@@ -24,7 +25,60 @@ LAND1_DIVISIONS = {"fast": (40, 4, 4), "accurate": (20, 4, 4)}
 LAND2_NODES = {"fast": 3000, "accurate": 1000}
 
 
-def land1(fidelity: Fidelity | str = "accurate", divisions: tuple[int, int, int] | None = None) -> dict:
+@dataclass(frozen=True)
+class Land1Result:
+    """Problem 1: the deformed z of the beam's probe point (10, 0.5, 1), mm, against the published
+    value; the solve's size and cost."""
+
+    fidelity: str
+    deflection_z_mm: float
+    nodes: int
+    dofs: int
+    newton_iterations: int
+    wall_s: float
+    problem: str = "land1"
+
+    @property
+    def reference_mm(self) -> float:
+        return REFERENCE["land1"]["deflection_z_mm"]
+
+    @property
+    def error_mm(self) -> float:
+        return self.deflection_z_mm - self.reference_mm
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "reference_mm": self.reference_mm, "error_mm": self.error_mm}
+
+
+@dataclass(frozen=True)
+class Land2Result:
+    """Problem 2: the inflated apexes' z (endocardium, epicardium), mm, and the cavity volume, mm³,
+    against the published values; the solve's size and cost."""
+
+    fidelity: str
+    endo_apex_z_mm: float
+    epi_apex_z_mm: float
+    cavity_volume_mm3: float
+    nodes: int
+    dofs: int
+    newton_iterations: int
+    wall_s: float
+    problem: str = "land2"
+
+    @property
+    def endo_apex_error_mm(self) -> float:
+        return self.endo_apex_z_mm - REFERENCE["land2"]["endo_apex_z_mm"]
+
+    @property
+    def epi_apex_error_mm(self) -> float:
+        return self.epi_apex_z_mm - REFERENCE["land2"]["epi_apex_z_mm"]
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), **{f"reference_{k}": v for k, v in REFERENCE["land2"].items()},
+                "endo_apex_error_mm": self.endo_apex_error_mm, "epi_apex_error_mm": self.epi_apex_error_mm}
+
+
+def land1(fidelity: Fidelity | str = "accurate", divisions: tuple[int, int, int] | None = None) -> Land1Result:
     """Beam [0,10]×[0,1]×[0,1] mm, fibres along x, C = 2 kPa, bf 8, bt 2, bfs 4, x = 0 clamped,
     follower pressure 0.004 kPa on z = 0. Reports the deformed z of the point (10, 0.5, 1)."""
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
@@ -46,14 +100,11 @@ def land1(fidelity: Fidelity | str = "accurate", divisions: tuple[int, int, int]
     u = problem.split(z)[0]
     probe = int(np.argmin(np.linalg.norm(problem.dofmap.points - [10.0, 0.5, 1.0], axis=1)))
     deflection = float(problem.dofmap.points[probe, 2] + u[probe, 2])
-    return {"problem": "land1", "fidelity": fid.name, "deflection_z_mm": deflection,
-            "reference_mm": REFERENCE["land1"]["deflection_z_mm"],
-            "error_mm": deflection - REFERENCE["land1"]["deflection_z_mm"],
-            "nodes": int(len(nodes)), "dofs": int(problem.free.size),
-            "newton_iterations": stats.newton_iterations, "wall_s": wall}
+    return Land1Result(fidelity=fid.name, deflection_z_mm=deflection, nodes=int(len(nodes)),
+                       dofs=int(problem.free.size), newton_iterations=stats.newton_iterations, wall_s=wall)
 
 
-def land2(fidelity: Fidelity | str = "accurate", target_nodes: int | None = None) -> dict:
+def land2(fidelity: Fidelity | str = "accurate", target_nodes: int | None = None) -> Land2Result:
     """Truncated ellipsoid (endo rs 7, rl 17; epi rs 10, rl 20; base z = 5 clamped), isotropic
     Guccione C = 10 kPa, b = 1, endocardial pressure 10 kPa. Apex z and cavity volume."""
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
@@ -73,15 +124,9 @@ def land2(fidelity: Fidelity | str = "accurate", target_nodes: int | None = None
     epi_apex = np.flatnonzero(on_axis)[np.argmin(problem.dofmap.points[on_axis, 2])] if on_axis.any() \
         else int(np.argmin(problem.dofmap.points[:, 2]))
     volume = cavity_volume(x, problem.pdofs, problem.dofmap.order, base_z=5.0)
-    ref = REFERENCE["land2"]
-    out = {"problem": "land2", "fidelity": fid.name,
-           "endo_apex_z_mm": float(x[endo_apex, 2]), "epi_apex_z_mm": float(x[epi_apex, 2]),
-           "cavity_volume_mm3": float(volume), "wall_s": wall,
-           "nodes": int(mesh.n_nodes), "dofs": int(problem.free.size), "newton_iterations": stats.newton_iterations}
-    out.update({f"reference_{k}": v for k, v in ref.items()})
-    out["endo_apex_error_mm"] = out["endo_apex_z_mm"] - ref["endo_apex_z_mm"]
-    out["epi_apex_error_mm"] = out["epi_apex_z_mm"] - ref["epi_apex_z_mm"]
-    return out
+    return Land2Result(fidelity=fid.name, endo_apex_z_mm=float(x[endo_apex, 2]), epi_apex_z_mm=float(x[epi_apex, 2]),
+                       cavity_volume_mm3=float(volume), nodes=int(mesh.n_nodes), dofs=int(problem.free.size),
+                       newton_iterations=stats.newton_iterations, wall_s=wall)
 
 
 def cavity_volume(points: np.ndarray, endo_facet_dofs: np.ndarray, order: int, base_z: float) -> float:

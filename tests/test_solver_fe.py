@@ -203,20 +203,20 @@ def test_land1_accurate_beam_deflection():
     """Documented tolerance (the goal): accurate (P2/P1, 20×4×4) within 0.1 mm of 4.169 mm
     (measured 4.120, −0.049: the J-penalty stiffens the coarse beam slightly)."""
     result = land1("accurate")
-    assert abs(result["deflection_z_mm"] - 4.169) < 0.1
+    assert abs(result.deflection_z_mm - 4.169) < 0.1 and result.error_mm == result.deflection_z_mm - 4.169
 
 
 def test_land1_fast_beam_deflection():
     """fast (P1/P1, 40×4×4) bends too stiffly (linear tets): documented 4.169 − 0.5 mm < z < 4.169."""
     result = land1("fast")
-    assert 4.169 - 0.5 < result["deflection_z_mm"] < 4.169
+    assert 4.169 - 0.5 < result.deflection_z_mm < 4.169
 
 
 def test_coarse_land2_accurate():
     """Coarse (~370-node) Land problem 2 with accurate: apexes within 0.35 mm (measured 0.26 / 0.20)."""
     result = land2("accurate", target_nodes=400)
-    assert abs(result["endo_apex_z_mm"] + 26.61) < 0.35
-    assert abs(result["epi_apex_z_mm"] + 28.28) < 0.35
+    assert abs(result.endo_apex_z_mm + 26.61) < 0.35 and result.endo_apex_error_mm == result.endo_apex_z_mm + 26.61
+    assert abs(result.epi_apex_z_mm + 28.28) < 0.35
 
 
 @pytest.mark.parametrize("preset", PRESET_NAMES)

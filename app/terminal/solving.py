@@ -5,10 +5,14 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from .console import json_line, machine_line
+
+if TYPE_CHECKING:
+    from solver.land_problems import Land1Result, Land2Result
 
 
 def print_shape_mesh(result, out: Path) -> None:
@@ -33,19 +37,20 @@ def print_inflated(result, params, fidelity: str, base: str, out: Path) -> None:
                f"displacement mean {mean:.3f} / max {largest:.3f} mm → {out}")
 
 
-def print_land(name: str, result: dict, fidelity: str, as_json: bool) -> None:
+def print_land(result: Land1Result | Land2Result, as_json: bool) -> None:
     """`verify`: one Land et al. (2015) problem against its published values."""
+    r = result
     if as_json:
-        typer.echo(json_line(result))
-    elif name == "land1":
-        typer.echo(f"land1 ({fidelity}, {result['nodes']} nodes, {result['dofs']} dofs, {result['wall_s']:.1f} s): "
-                   f"deflection z {result['deflection_z_mm']:.3f} mm vs reference {result['reference_mm']:.3f} mm "
-                   f"(error {result['error_mm']:+.3f} mm)")
+        typer.echo(json_line(r.as_dict()))
+    elif r.problem == "land1":
+        typer.echo(f"land1 ({r.fidelity}, {r.nodes} nodes, {r.dofs} dofs, {r.wall_s:.1f} s): "
+                   f"deflection z {r.deflection_z_mm:.3f} mm vs reference {r.reference_mm:.3f} mm "
+                   f"(error {r.error_mm:+.3f} mm)")
     else:
-        typer.echo(f"land2 ({fidelity}, {result['nodes']} nodes, {result['dofs']} dofs, {result['wall_s']:.1f} s): "
-                   f"endo apex z {result['endo_apex_z_mm']:.2f} mm (ref −26.61, {result['endo_apex_error_mm']:+.2f}), "
-                   f"epi apex z {result['epi_apex_z_mm']:.2f} mm (ref −28.28, {result['epi_apex_error_mm']:+.2f}), "
-                   f"cavity {result['cavity_volume_mm3']:.0f} mm³ (ref ≈10734)")
+        typer.echo(f"land2 ({r.fidelity}, {r.nodes} nodes, {r.dofs} dofs, {r.wall_s:.1f} s): "
+                   f"endo apex z {r.endo_apex_z_mm:.2f} mm (ref −26.61, {r.endo_apex_error_mm:+.2f}), "
+                   f"epi apex z {r.epi_apex_z_mm:.2f} mm (ref −28.28, {r.epi_apex_error_mm:+.2f}), "
+                   f"cavity {r.cavity_volume_mm3:.0f} mm³ (ref ≈10734)")
 
 
 def print_solver_bench(rows: list, shape: int, nodes: int, threads: int, as_json: bool) -> None:
