@@ -4,7 +4,8 @@
 #
 #   scripts/build_network.sh                 # all steps, in build/network/
 #   WORK=/scratch/net CPUS=8 scripts/build_network.sh
-#   STEPS="fast reference" scripts/build_network.sh   # only the label stores
+#   STEPS="fast accurate" scripts/build_network.sh    # only the label stores
+#   REF_SHAPES=12 scripts/build_network.sh   # a third stage: fine-tuning on `reference` labels
 #
 # Cost on the 2-core box: docs/model-card.md ("Training data and what it cost").
 set -euo pipefail
@@ -12,15 +13,22 @@ cd "$(dirname "$0")/.."
 HEARTCTL=${HEARTCTL:-.venv/bin/heartctl}
 WORK=${WORK:-build/network}
 CPUS=${CPUS:-2}
-STEPS=${STEPS:-"fast reference pretrain finetune score package"}
-SHIP=${SHIP:-finetuned}   # the run scored and packaged (pretrained: the fast-label network alone)
+REF_SHAPES=${REF_SHAPES:-0}
+if [ "$REF_SHAPES" -gt 0 ]; then
+    STEPS=${STEPS:-"fast accurate reference pretrain finetune refine score package"}
+    SHIP=${SHIP:-refined}
+else
+    STEPS=${STEPS:-"fast accurate pretrain finetune score package"}
+    SHIP=${SHIP:-finetuned}   # the run scored and packaged (pretrained: the fast-label network alone)
+fi
 mkdir -p "$WORK"
 
 # The training box: the paper's (P 4–14 mmHg, C 50–300 Pa, helix 60–70 / −60…−70°), ~350-node meshes of the
-# shape model (version 2). Pretraining: 60 shapes of seed 1, `fast` labels, helix at the box's four corners.
-# Fine-tuning: REF_SHAPES shapes of seed 0, `reference` labels (27 s a pair on one core), the same pressures and
-# stiffnesses at the helix box's centre: the labels' budget goes to more shapes. Held out: seed 0 from shape 20 on.
-REF_SHAPES=${REF_SHAPES:-12}
+# shape model (version 2), helix at the box's four corners. Pretraining: 60 shapes of seed 1, `fast` labels
+# (~0.3 s a pair on one core). Fine-tuning: ACC_SHAPES shapes of seed 0, `accurate` labels (~3 s a pair).
+# Optionally a third stage on REF_SHAPES shapes of seed 0 with `reference` labels (30 s to minutes a pair),
+# at the helix box's centre. Held out: seed 0 from shape 20 on.
+ACC_SHAPES=${ACC_SHAPES:-14}
 GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
 REF_GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 65 --epi=-65 --nodes 350 --num-cpus "$CPUS")
 
@@ -30,8 +38,12 @@ if want fast; then
     echo "== fast labels for pretraining: 60 shapes (seed 1) × 3 P × 3 C × 2 × 2 helix"
     $HEARTCTL generate --shapes 60 --seed 1 "${GRID[@]}" --fidelity fast --store "$WORK/fast.zarr"
 fi
+if want accurate; then
+    echo "== accurate labels for fine-tuning: $ACC_SHAPES shapes (seed 0) × 3 P × 3 C × 2 × 2 helix"
+    $HEARTCTL generate --shapes "$ACC_SHAPES" --seed 0 "${GRID[@]}" --fidelity accurate --store "$WORK/accurate.zarr"
+fi
 if want reference; then
-    echo "== reference labels for fine-tuning: $REF_SHAPES shapes (seed 0) × 3 P × 3 C, helix 65 / −65°"
+    echo "== reference labels for the last stage: $REF_SHAPES shapes (seed 0) × 3 P × 3 C, helix 65 / −65°"
     $HEARTCTL generate --shapes "$REF_SHAPES" --seed 0 "${REF_GRID[@]}" --fidelity reference --store "$WORK/reference.zarr"
 fi
 if want pretrain; then
@@ -40,17 +52,23 @@ if want pretrain; then
         --run-dir "$WORK/pretrained" --epochs 20
 fi
 if want finetune; then
+    echo "== fine-tuning on the accurate labels"
+    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/accurate.zarr" \
+        --run-dir "$WORK/finetuned" --epochs 30 --lr 3e-4 --init-from "$WORK/pretrained"
+fi
+if want refine; then
     echo "== fine-tuning on the reference labels"
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/reference.zarr" \
-        --run-dir "$WORK/finetuned" --epochs 100 --lr 3e-4 --init-from "$WORK/pretrained"
+        --run-dir "$WORK/refined" --epochs 100 --lr 1e-4 --init-from "$WORK/finetuned"
 fi
 if want score; then
-    echo "== scoring against the reference preset: its test split, held-out shapes 20–22 (seed 0), the atlas LV"
-    if [ "$SHIP" = finetuned ]; then  # its test split: shapes of the reference store it never trained on
-        $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" --reference "$WORK/reference.zarr"
-    fi
-    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 3 --cases 3 --user-nodes 750 \
-        --threads "$CPUS" --out "$WORK/trade"
+    echo "== scoring: the label store's test split, held-out shapes 20– (seed 0) against reference, the atlas LV"
+    case "$SHIP" in  # its test split: shapes of its last label store it never trained on
+        finetuned) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/accurate.zarr" ;;
+        refined) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" ;;
+    esac
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes "${TRADE_SHAPES:-3}" --cases 3 \
+        --user-nodes 750 --threads "$CPUS" --out "$WORK/trade"
     .venv/bin/python scripts/bundle_reference_pairs.py "$WORK/$SHIP" "$WORK/trade/solves"
     if [ -d "${ATLAS:-../shared/fixtures/l2u}" ]; then
         .venv/bin/python scripts/score_atlas.py "${ATLAS:-../shared/fixtures/l2u}" --run "$WORK/$SHIP" \
