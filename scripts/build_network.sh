@@ -54,7 +54,7 @@ fi
 if want finetune; then
     echo "== fine-tuning on the accurate labels"
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/accurate.zarr" \
-        --run-dir "$WORK/finetuned" --epochs 30 --lr 3e-4 --init-from "$WORK/pretrained"
+        --run-dir "$WORK/finetuned" --epochs 15 --lr 3e-4 --init-from "$WORK/pretrained"
 fi
 if want refine; then
     echo "== fine-tuning on the reference labels"
