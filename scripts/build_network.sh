@@ -67,8 +67,12 @@ if want score; then
         finetuned) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/accurate.zarr" ;;
         refined) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" ;;
     esac
-    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes "${TRADE_SHAPES:-3}" --cases 3 \
-        --user-nodes 750 --threads "$CPUS" --out "$WORK/trade"
+    # the network at ~330 and ~700 nodes; then every method at ~330 nodes (the table --method auto reads)
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 3 --cases 3 --user-nodes 750 \
+        --network-only --threads "$CPUS" --out "$WORK/trade750"
+    mkdir -p "$WORK/trade/solves" && cp -n "$WORK/trade750/solves/"* "$WORK/trade/solves/"
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 3 --cases 3 --user-nodes 0 \
+        --threads "$CPUS" --out "$WORK/trade"
     .venv/bin/python scripts/bundle_reference_pairs.py "$WORK/$SHIP" "$WORK/trade/solves"
     if [ -d "${ATLAS:-../shared/fixtures/l2u}" ]; then
         .venv/bin/python scripts/score_atlas.py "${ATLAS:-../shared/fixtures/l2u}" --run "$WORK/$SHIP" \
