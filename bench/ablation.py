@@ -13,7 +13,7 @@ import torch
 from trainer.config import PAPER, TrainConfig, canonical_name, check_device, code_of, named_config
 from trainer.errors import TrainerError
 from trainer.data.store_cases import training_data
-from trainer.evaluation.evaluate import evaluate_run
+from trainer.evaluation.evaluate import HEADLINE, evaluate_run
 from trainer.files import write_csv, write_json
 from trainer.training.loop import Dist, fit
 
@@ -80,8 +80,8 @@ def run_ablation(base: TrainConfig, configs: list, root: Path, device: str = "cp
     for name, model in models.items():
         run_dir = root / run_name(name, base.sr)
         log(f"--- {name} → {run_dir}")
-        rows.append({"config": name, "code": code_of(name), **row_from_run(replace(base, config_name=name, model=model), run_dir, device,
-                                                    log, bundle)})
+        row = row_from_run(replace(base, config_name=name, model=model), run_dir, device, log, bundle)
+        rows.append({"config": name, "code": code_of(name), **row})
     result = {"store": base.store, "split": base.split, "sr": base.sr, "seed": base.seed, "epochs": base.epochs,
               "rows": rows, "best": best_per_metric(rows)}
     write_csv(root / "ablation.csv", rows)
@@ -94,8 +94,8 @@ def row_from_run(cfg: TrainConfig, run_dir: Path, device: str = "cpu", log=print
     the table row: the TABLE_METRICS, ms per case, test cases, epochs, parameters, training cases."""
     summary = fit(cfg, run_dir, Dist(device=torch.device(device), log=log), bundle=bundle)
     report = evaluate_run(run_dir, cfg.store, "test", device, plots=False)
-    return {**{k: report.mean(k) for k in ("md_mm", "hd_mm", "sd_mm", "dsc_1mm", "dsc_01mm")},
-            "ms_per_case": report.ms_per_case, "cases": report.cases, "nn_md_mm": report.mean("nn_md_mm"), "epochs": summary.epoch, "best_epoch": summary.best_epoch,
+    return {**{k: report.mean(k) for k in (*HEADLINE, "nn_md_mm")}, "ms_per_case": report.ms_per_case,
+            "cases": report.cases, "epochs": summary.epoch, "best_epoch": summary.best_epoch,
             "parameters": summary.n_parameters, "labelled_cases": summary.labelled_cases,
             "train_cases": summary.train_cases}
 

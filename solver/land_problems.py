@@ -36,12 +36,12 @@ class LandSolve:
     wall_s: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Land1Result(LandSolve):
     """Problem 1: the deformed z of the beam's probe point (10, 0.5, 1), mm, against the published
     value."""
 
-    deflection_z_mm: float = float("nan")
+    deflection_z_mm: float
     problem: str = "land1"
 
     @property
@@ -56,14 +56,14 @@ class Land1Result(LandSolve):
         return {**asdict(self), "reference_mm": self.reference_mm, "error_mm": self.error_mm}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Land2Result(LandSolve):
     """Problem 2: the inflated apexes' z (endocardium, epicardium), mm, and the cavity volume, mm³,
     against the published values."""
 
-    endo_apex_z_mm: float = float("nan")
-    epi_apex_z_mm: float = float("nan")
-    cavity_volume_mm3: float = float("nan")
+    endo_apex_z_mm: float
+    epi_apex_z_mm: float
+    cavity_volume_mm3: float
     problem: str = "land2"
 
     @property
