@@ -28,7 +28,7 @@ mkdir -p "$WORK"
 # (~0.3 s a pair on one core). Fine-tuning: ACC_SHAPES shapes of seed 0, `accurate` labels (~3 s a pair).
 # Optionally a third stage on REF_SHAPES shapes of seed 0 with `reference` labels (30 s to minutes a pair),
 # at the helix box's centre. Held out: seed 0 from shape 20 on.
-ACC_SHAPES=${ACC_SHAPES:-14}
+ACC_SHAPES=${ACC_SHAPES:-20}
 GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
 REF_GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 65 --epi=-65 --nodes 350 --num-cpus "$CPUS")
 
