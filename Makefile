@@ -1,7 +1,7 @@
 PY := .venv/bin/python
 VENV_STAMP := .venv/.installed
 
-.PHONY: run test bench network clean
+.PHONY: run test test-all bench network clean
 
 $(VENV_STAMP): pyproject.toml
 	test -x $(PY) || python3 -m venv .venv
@@ -12,7 +12,12 @@ $(VENV_STAMP): pyproject.toml
 run: $(VENV_STAMP)
 	bash scripts/run_local.sh
 
+# every test but the slow scenarios and studies, on two processes (one module each at a time)
 test: $(VENV_STAMP)
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not slow" tests
+
+# every test, one process: what CI runs
+test-all: $(VENV_STAMP)
 	$(PY) -m pytest -q tests
 
 bench: $(VENV_STAMP)

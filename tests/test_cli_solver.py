@@ -501,6 +501,7 @@ def test_a_pressure_above_end_diastolic_is_warned_by_solve_and_unload(lv_file, t
     assert "warning" not in quiet.output
 
 
+@pytest.mark.slow
 def test_unload_adaptive_writes_its_error_estimate(lv_file, tmp_path):
     """--fidelity adaptive --tolerance-mm X: accurate, then refined where the indicator is largest; the
     output carries the estimated nodal error; without a tolerance, or with a network method, one line

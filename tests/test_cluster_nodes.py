@@ -31,6 +31,8 @@ from trainer_fixtures import make_tiny_store  # noqa: E402
 from gloo_ranks import fit_rank, spawn_ranks  # noqa: E402
 from local_ray import stop_local_ray  # noqa: E402
 
+pytestmark = pytest.mark.slow  # a two-node cluster losing a node, for a sweep and for Ray Train: make test-all
+
 SMALL = replace(PAPER, hidden=8, heads=2, decoder_hidden=(16,), param_hidden=8)
 
 

@@ -180,6 +180,7 @@ def test_generate_refuses_to_extend_an_imported_store(store):
         assert "Traceback" not in r.output and r.output.count("heartctl: error:") == 1
 
 
+@pytest.mark.slow
 def test_forward_consistency_on_one_pair(store):
     """Our forward solve of their unloaded mesh, set up as their pipeline (accurate P2/P1, base
     "heartfem", their fibre rule, their C convention, degree-4 quadrature: bench l2u's defaults),
@@ -217,6 +218,7 @@ def test_inverse_direction_unloads_their_ed_mesh_onto_their_unloaded_mesh(store)
     assert 0.9 < o["ours_loading_mean_mm"] / o["loading_mean_mm"] < 1.1
 
 
+@pytest.mark.slow
 def test_train_and_evaluate_with_the_source_split(tmp_path):
     """An imported store laid out over the dataset's train/val/test folders (the fixture pairs
     copied under three shape numbers): `train --split source` keeps the source assignment, and

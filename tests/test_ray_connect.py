@@ -74,6 +74,7 @@ def test_connect_timeout_needs_an_address_and_a_positive_number(tmp_path):
     assert not Path(store).exists()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["generate", "train"])
 def test_a_port_that_never_answers_as_ray_times_out(tmp_path, silent_port, command):
     """The port accepts, Ray never connects: the command gives up after --connect-timeout in one line
@@ -98,6 +99,7 @@ def test_a_port_that_never_answers_as_ray_times_out(tmp_path, silent_port, comma
     assert not store.exists() and not (tmp_path / "r").exists()
 
 
+@pytest.mark.slow
 def test_an_abandoned_connection_attempt_stays_quiet(silent_port):
     """Ray's C++ client logs its abandoned attempt on fd 2 5 s after it began (`rpc_client.h:153:
     Failed to connect to GCS …`): a process that lives on after the time-out shows none of it, and

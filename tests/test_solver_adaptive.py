@@ -118,6 +118,7 @@ def test_sliding_gauge_is_the_base_surfaces_on_any_mesh(lv):
     assert abs(moment) < 1e-8 * scale * 30.0
 
 
+@pytest.mark.slow
 def test_adaptive_unload_is_nearer_the_converged_answer(lv):
     """From `accurate` on the mesh, each refinement where η is largest; the answer at the ED mesh's
     vertices is nearer `reference` (the converged solution on this mesh) than `accurate`'s, and its

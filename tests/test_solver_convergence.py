@@ -80,6 +80,7 @@ def test_p2_fibres_follow_the_wall_an_order_better_than_p1():
     assert errors[2, 0] / errors[2, 1] > errors[1, 0] / errors[1, 1]
 
 
+@pytest.mark.slow
 def test_the_quadrature_study_scores_each_degree_against_the_highest():
     """bench convergence's quadrature study (accurate on the 86-node LV and its refinement): the
     highest cell degree is the quadrature reference, degree 2's error shrinks under refinement
@@ -104,6 +105,7 @@ def test_the_quadrature_study_scores_each_degree_against_the_highest():
     assert "## Convergence in quadrature" in markdown_report(result)
 
 
+@pytest.mark.slow
 def test_unloading_converges_under_refinement_at_the_expected_rate(tiny, one_level):
     """fast (P1/P1) on a tiny LV and its two refinements: the nodal differences of consecutive levels
     shrink at an observed order of 1–2.5 (P1: 2 for a smooth solution; the apical fibre vortex and
@@ -152,6 +154,7 @@ def reference_chain(tiny):
     return run_chain(tiny, [mid, replace(mid, pressure_mmhg=12.0)], "reference")
 
 
+@pytest.mark.slow
 def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny, one_level, reference_chain):
     params = CASES["mid"]
     pair = reference_chain[0]  # the chain's first pair, solved cold
@@ -173,6 +176,7 @@ def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny, on
         inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes[:-1])
 
 
+@pytest.mark.slow
 def test_a_reference_chain_solves_on_one_refined_mesh_from_its_own_refined_pairs(reference_chain):
     """A refined preset's chain keeps one workspace on the refined mesh: the second pair's inverse
     starts from the refined pair before it (no coarse solve) and meets the preset's tolerance (the
@@ -184,6 +188,7 @@ def test_a_reference_chain_solves_on_one_refined_mesh_from_its_own_refined_pairs
     assert second["stats"]["inverse_mismatch_mm"] <= tol and second["stats"]["roundtrip_error_mm"] < 10 * tol
 
 
+@pytest.mark.slow
 def test_the_report_names_its_reference(one_level):
     text = markdown_report(one_level, "# title")
     assert "Reference: `accurate` on the hierarchy's finest mesh" in text

@@ -56,6 +56,7 @@ def test_the_jacobian_product_is_the_forward_maps_derivative(thin_lv, preset):
     assert np.abs(jv - v).max() > 0.1  # the displacement's own change is not negligible here
 
 
+@pytest.mark.slow
 def test_newton_inverse_lands_where_the_fixed_point_does_in_fewer_updates(thin_lv):
     fid = get_fidelity("accurate")
     newton = lv.inverse_solve(thin_lv, THIN_SOFT, replace(fid, inverse_step="newton"))

@@ -54,6 +54,7 @@ def test_concurrent_meshing_with_user_gmsh_settings_gives_the_same_mesh(tmp_path
     assert outputs == [expected] * 3
 
 
+@pytest.mark.slow
 def test_the_sweep_meshes_each_shape_in_a_fresh_process(monkeypatch):
     """A store's mesh does not depend on the state of the worker that made it: state changed here (a
     stand-in for whatever a long-lived worker accumulates) reaches meshes made in this process, not the

@@ -26,6 +26,7 @@ def test_corners_hardest_first():
     assert {p.helix_endo_deg for p in PAPER_BOX.corners()} == {60.0, 70.0}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("preset", ["fast", "accurate"])
 def test_hardest_extended_corner_converges(extreme_mesh, preset):
     row = stability_case(extreme_mesh, CaseParameters(30.0, 20.0, 80.0, -80.0), preset)

@@ -22,6 +22,8 @@ from storage.reader import PairReader  # noqa: E402
 from storage.schema import DONE, PENDING  # noqa: E402
 from storage.writer import PairStore  # noqa: E402
 
+pytestmark = pytest.mark.slow  # a local S3 server (and a Ray with its variables) under sweeps, training and outages
+
 BUCKET = "heartctl-test"
 # one shape, 3 pressure chains of 2 cases (fast preset, a coarse mesh); one chain in flight at a time
 # The ED mesh comes from a file (--meshes, filled by `ed_mesh_folder`), the same for every store here:

@@ -54,6 +54,7 @@ def test_local_ray_workers_are_not_niced(ray_cluster):
     assert WORKER_NICENESS == 0
 
 
+@pytest.mark.slow
 def test_failed_case_recorded_and_sweep_goes_on_then_resume(ray_cluster, tmp_path):
     loc = str(tmp_path / "f.zarr")
     sp = spec(pressure_mmhg=(8.0, 1e5, 12.0))  # 1e5 mmHg cannot be inflated
@@ -99,6 +100,7 @@ def _busy_case_workers() -> list[int]:
     return processes_titled(b"ray::run_chain", os.getpid())
 
 
+@pytest.mark.slow
 def test_killed_worker_sweep_still_finishes(ray_cluster, tmp_path):
     loc = str(tmp_path / "w.zarr")
     # four chains of four pairs, two in flight, so that workers are still mid-chain when the first
@@ -125,6 +127,7 @@ def test_killed_worker_sweep_still_finishes(ray_cluster, tmp_path):
         assert np.isfinite(c.unloaded).all() and np.isfinite(c.loaded).all()
 
 
+@pytest.mark.slow
 def test_driver_killed_then_rerun_finishes(ray_cluster, tmp_path):
     loc = str(tmp_path / "d.zarr")
     # 2 pressure chains of 2 cases, one in flight: the first write holds the first chain's cases
@@ -354,6 +357,7 @@ def test_retry_damaged_recomputes_only_the_damaged_case(ray_cluster, tmp_path):
     assert np.linalg.norm(after.case(0, 2).loaded - after.mesh(0).nodes, axis=1).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_retry_damaged_recomputes_missing_data_and_a_shape_with_edited_metadata(ray_cluster, tmp_path):
     """Shape 0's loaded shard deleted (its 4 cases' data missing) and shape 1's unloaded node count
     edited: verify names both, a plain sweep refuses the store in one line, and one with retry_damaged

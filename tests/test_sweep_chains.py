@@ -208,6 +208,7 @@ def test_a_workspace_builds_one_problem_and_one_analysis_and_changes_no_answer(m
         assert np.abs(pair.loaded_nodes - alone.loaded_nodes).max() < 1e-9
 
 
+@pytest.mark.slow
 def test_an_accurate_chain_starts_from_its_neighbours_loaded_states(mesh, monkeypatch):
     """Each `accurate` inverse of a chain starts from the loaded states of the pairs before it,
     extrapolated to its pressure (edge midpoints and pressure field included), on the factorisation

@@ -73,6 +73,7 @@ def _check_grown(location: str, grown: dict) -> None:
     assert run_sweep(spec(2), location, progress=False).submitted == 0  # and it resumes as any store
 
 
+@pytest.mark.slow
 def test_a_larger_shapes_grows_the_store_and_keeps_its_done_cases(ray_cluster, tmp_path):
     loc = str(tmp_path / "g.zarr")
     grown = _grow(loc)
@@ -102,6 +103,7 @@ def test_a_larger_shapes_grows_the_store_and_keeps_its_done_cases(ray_cluster, t
     assert json.loads(res.stdout)["shapes"] == 2
 
 
+@pytest.mark.slow
 def test_a_version_1_store_grows_in_its_own_layout(ray_cluster, tmp_path):
     loc = str(tmp_path / "v1.zarr")
     _version_1(loc, spec(1))

@@ -122,6 +122,7 @@ def test_choose_method_cheapest_that_met_the_tolerance():
     assert adaptive.run == Method("fe", "adaptive", tolerance_mm=0.05)
 
 
+@pytest.mark.slow
 def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):
     """run_trade end to end on one held-out case (its reference made cheap here: `accurate` on the
     mesh itself), then the report and the choice it drives."""

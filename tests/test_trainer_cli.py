@@ -227,6 +227,7 @@ def test_resume_refuses_a_regenerated_store(tmp_path):
     assert_bad_input(run(*args, "--epochs", 2), "does not match", "base")
 
 
+@pytest.mark.slow
 def test_bench_model_small():
     fast = ("--min-seconds", 0.05)  # figures from three calls each: this checks the output, not the speed
     r = run("bench", "model", "--nodes", 120, "--batches", "1,2", "--train-batch", 2, "--json", *fast)
@@ -252,6 +253,7 @@ def test_bench_model_small():
         assert_bad_input(run("bench", "model", "--device", "cuda"), "CUDA")
 
 
+@pytest.mark.slow
 def test_bench_ablation_table(trained, tmp_path):
     """Three configurations on one split (one takes the linear FE response, the others share its
     graphs): a table row each with the evaluate metrics, files written, and a rerun resumes (no
@@ -316,6 +318,7 @@ def test_bench_learning_curve(trained, tmp_path):
                          "--train-fraction", "0"), "train-fraction")
 
 
+@pytest.mark.slow
 def test_ensemble_is_the_mean_of_its_members_and_reports_their_spread(trained, tmp_path):
     """`--run A --run B`: evaluate scores the mean of the two networks' answers; unload writes it with
     the members' per-node spread; a member with another split (seed) is refused."""
@@ -598,6 +601,7 @@ def test_a_split_resumes_however_it_is_written(trained, tmp_path):
     assert load_run(tmp_path / "r")["epoch"] == 2
 
 
+@pytest.mark.slow
 def test_sigterm_stops_training_like_ctrl_c(trained, tmp_path):
     """kill / Slurm / systemd stop a job with SIGTERM: one line, exit 130, the checkpoint kept, resumable."""
     import signal

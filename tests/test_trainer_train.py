@@ -276,6 +276,7 @@ def test_evaluate_prices_the_linear_response_of_networks_that_take_it(store, tmp
     assert evaluate_run(plain, store, "test", plots=False).response_ms_per_mesh is None
 
 
+@pytest.mark.slow
 def test_compiled_training_learns_what_eager_training_learns(store, tmp_path, monkeypatch):
     """--compile: torch.compile runs the training step (the attention graph built inside it) and
     gives the eager run's losses; the checkpoint holds the plain model's weights.
@@ -381,6 +382,7 @@ def test_pca_baseline_fits_and_evaluates(store, tmp_path):
     assert chosen.mean_distance_mm(cases.features, cases.params, val_disp, norm) == pytest.approx(min(grid_md))
 
 
+@pytest.mark.slow
 def test_ray_train_resumes_a_plain_run_and_a_divergence_is_one_line(store, tmp_path, local_ray):
     """Two gloo CPU workers take a run on from the plain loop's checkpoint.pt (a run Ray Train starts
     from scratch, two workers on two nodes, checkpoints and resumes: tests/test_cluster_nodes.py)."""
