@@ -249,7 +249,8 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
     network's guess refined by 1, 2, 4 inverse updates or to tolerance, each against the converged
     solution (the reference preset). Writes trade.md, trade.png and trade.json (read by --method auto)."""
     set_solver_threads(threads)
-    from bench.trade import TradeSpec, run_trade, write_report
+    from bench.trade import TradeSpec, run_trade
+    from bench.trade_table import write_report
 
     out = out or run[0] / "trade"
     with failures():

@@ -9,11 +9,11 @@ base condition and fibre rule). Network answers and budgeted hybrids also get th
 (`solver.reinflate`): how far they land from the ED mesh when inflated again, to see how well it
 tracks their true error.
 
-The result is the run's trade table (`trade.json` in the report folder): `app.method_choice` reads it
-to pick the cheapest method that met a tolerance (`heartctl unload --method auto`)."""
+The result is the run's trade table (`bench.trade_table.TradeResult`, written as `trade.json` in the report
+folder): `app.method_choice` reads it to pick the cheapest method that met a tolerance (`heartctl unload
+--method auto`)."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field
@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.convergence import LevelSolve, SolveCache
+from bench.trade_table import TradeResult, TradeRow, check_tracking, hybrid_goal, summarise
 from solver.adaptive import adaptive_unload
 from solver.forward import SolveError
 from solver.lv import inverse_solve
@@ -29,7 +30,6 @@ from solver.mesh import MeshError, TetMesh, check_geometry
 from solver.parameters import CaseParameters
 from solver.reinflate import reinflation_error
 
-from app.method_choice import TRADE_FILE
 from trainer.errors import TrainerError
 
 FE_PRESETS_COMPARED = ("fast", "accurate")
@@ -257,16 +257,7 @@ def score(answer: Answer, reference: np.ndarray) -> dict:
     return {"mean_mm": float(e.mean()), "p95_mm": float(np.percentile(e, 95)), "max_mm": float(e.max())}
 
 
-def spearman(a: list, b: list) -> float:
-    """Spearman rank correlation of two equal-length samples (nan for fewer than 3 pairs)."""
-    if len(a) < 3:
-        return float("nan")
-    from scipy.stats import spearmanr
-
-    return float(spearmanr(a, b).statistic)
-
-
-def run_trade(spec: TradeSpec, cache_dir: Path | None = None, progress=None) -> dict:
+def run_trade(spec: TradeSpec, cache_dir: Path | None = None, progress=None) -> TradeResult:
     """Every held-out case solved by every method and scored against its reference; the summary per
     (method, resolution), the a-posteriori check's tracking of the true error, and the hybrid goal."""
     from solver.meshing import mesh_lv
@@ -297,29 +288,35 @@ def run_trade(spec: TradeSpec, cache_dir: Path | None = None, progress=None) -> 
             continue
         answers = {a.method: a for a in solve_case(case, ed, predictors, spec, base, fibres)}
         for ans in answers.values():
-            row = {"shape": case.shape_id, "nodes": ed.n_nodes, "resolution": case.resolution, "case": case.name,
-                   "params": asdict(case.params), "method": ans.method, "wall_s": ans.wall_s,
-                   "network_s": ans.network_s, "assembly_s": ans.assembly_s, "linear_s": ans.linear_s,
-                   "updates": ans.updates, "mismatch_mm": ans.mismatch_mm, **score(ans, ref.unloaded)}
-            checked = ans.method.startswith("gnn") or (ans.method.startswith("hybrid") and "to tol" not in ans.method)
-            if checked and ans.unloaded is not None:
-                chk = reinflation_error(ed, ans.unloaded, case.params, spec.check_preset, base, fibres)
-                row.update(check_mean_mm=chk.mean_mm, check_max_mm=chk.max_mm, check_s=chk.wall_s,
-                           check_failed=chk.failed)
-            if ans.method == "hybrid accurate to tol":
-                row["vs_cold_max_mm"] = _distance(ans, answers["fe accurate"])
-            rows.append(row)
+            rows.append(_scored_row(case, ed, ans, ref.unloaded, answers, spec.check_preset, base, fibres))
         if progress:
-            done = [r for r in rows if r["shape"] == case.shape_id and r["nodes"] == ed.n_nodes and r["case"] == case.name]
-            gnn = next(r for r in done if r["method"] == "gnn")
+            done = [r for r in rows if r.shape == case.shape_id and r.nodes == ed.n_nodes and r.case == case.name]
+            gnn = next(r for r in done if r.method == "gnn")
             progress(f"  shape {case.shape_id}, {ed.n_nodes} nodes, {case.name}: reference {ref.wall_s:.0f} s; "
-                     f"gnn {gnn.get('mean_mm', float('nan')):.3f} mm mean; "
-                     + ", ".join(f"{r['method']} {r['wall_s']:.1f} s" for r in done if r["method"].startswith("fe")))
+                     f"gnn {gnn.mean_mm if gnn.scored else float('nan'):.3f} mm mean; "
+                     + ", ".join(f"{r.method} {r.wall_s:.1f} s" for r in done if r.method.startswith("fe")))
     methods = method_names(spec, len(spec.runs) > 1)
-    return {"spec": {**asdict(spec), "runs": list(spec.runs)}, "base": base, "fibres": fibres,
-            "reference": "the reference preset (accurate on the ED mesh refined once), same law, base and fibres",
-            "rows": rows, "summary": summarise(rows, methods), "check": check_tracking(rows),
-            "hybrid_goal": hybrid_goal(rows)}
+    return TradeResult(spec={**asdict(spec), "runs": list(spec.runs)}, base=base, fibres=fibres,
+                       reference="the reference preset (accurate on the ED mesh refined once), same law, base and fibres",
+                       rows=rows, summary=summarise(rows, methods), hybrid_goal=hybrid_goal(rows),
+                       check_network=check_tracking([r for r in rows if r.method == "gnn"]),
+                       check_all=check_tracking(rows))
+
+
+def _scored_row(case: HeldOutCase, ed: TetMesh, ans: Answer, reference: np.ndarray, answers: dict,
+                check_preset: str, base: str, fibres: str) -> TradeRow:
+    """One answer scored against the reference; network answers and budgeted hybrids inflated again (the
+    check); the hybrid to tolerance measured against the cold accurate answer."""
+    check = {}
+    checked = ans.method.startswith("gnn") or (ans.method.startswith("hybrid") and "to tol" not in ans.method)
+    if checked and ans.unloaded is not None:
+        chk = reinflation_error(ed, ans.unloaded, case.params, check_preset, base, fibres)
+        check = dict(check_mean_mm=chk.mean_mm, check_max_mm=chk.max_mm, check_s=chk.wall_s, check_failed=chk.failed)
+    vs_cold = _distance(ans, answers["fe accurate"]) if ans.method == "hybrid accurate to tol" else None
+    return TradeRow(shape=case.shape_id, nodes=ed.n_nodes, resolution=case.resolution, case=case.name,
+                    params=asdict(case.params), method=ans.method, wall_s=ans.wall_s, network_s=ans.network_s,
+                    assembly_s=ans.assembly_s, linear_s=ans.linear_s, updates=ans.updates,
+                    mismatch_mm=ans.mismatch_mm, vs_cold_max_mm=vs_cold, **score(ans, reference), **check)
 
 
 def _distance(a: Answer, b: Answer) -> float | None:
@@ -327,146 +324,3 @@ def _distance(a: Answer, b: Answer) -> float | None:
     if a.unloaded is None or b.unloaded is None:
         return None
     return float(np.linalg.norm(a.unloaded - b.unloaded, axis=1).max())
-
-
-def _p95(values: list) -> float:
-    return float(np.percentile(values, 95)) if values else float("nan")
-
-
-def summarise(rows: list, methods: list) -> list[dict]:
-    """Per (resolution, method): cases answered, error (mean of case means; p95 and max over the cases'
-    p95 and max), time per case (mean, p95) and its split (network, assembly, linear solves, other)."""
-    out = []
-    for res in ("training", "user"):
-        mine = [r for r in rows if r["resolution"] == res]
-        if not mine:
-            continue
-        for m in methods:
-            rs = [r for r in mine if r["method"] == m]
-            if not rs:
-                continue
-            ok = [r for r in rs if "mean_mm" in r]
-            wall = [r["wall_s"] for r in rs]
-            s = {"resolution": res, "method": m, "nodes": int(np.median([r["nodes"] for r in rs])),
-                 "cases": len(rs), "ok": len(ok), "time_mean_s": float(np.mean(wall)), "time_p95_s": _p95(wall)}
-            if ok:
-                s.update(mean_mm=float(np.mean([r["mean_mm"] for r in ok])), p95_mm=_p95([r["p95_mm"] for r in ok]),
-                         max_mm=float(max(r["max_mm"] for r in ok)))
-            for part in ("network_s", "assembly_s", "linear_s"):
-                s[part] = float(np.mean([r[part] for r in rs]))
-            s["other_s"] = max(0.0, s["time_mean_s"] - s["network_s"] - s["assembly_s"] - s["linear_s"])
-            out.append(s)
-    return out
-
-
-def check_tracking(rows: list) -> dict:
-    """How well the re-inflation distance ranks the true error (Spearman over the checked answers, max
-    nodal), and the median factor true / estimate: for the network alone and for every checked answer."""
-    def track(rs):
-        rs = [r for r in rs if "mean_mm" in r and not r.get("check_failed") and "check_max_mm" in r]
-        if not rs:
-            return {"answers": 0}
-        true = [r["max_mm"] for r in rs]
-        est = [r["check_max_mm"] for r in rs]
-        ratio = [t / e for t, e in zip(true, est) if e > 0]
-        return {"answers": len(rs), "spearman_max": spearman(est, true),
-                "spearman_mean": spearman([r["check_mean_mm"] for r in rs], [r["mean_mm"] for r in rs]),
-                "true_over_estimate_median": float(np.median(ratio)) if ratio else float("nan"),
-                "check_s_mean": float(np.mean([r["check_s"] for r in rs]))}
-
-    return {"gnn": track([r for r in rows if r["method"] == "gnn"]),
-            "all": track([r for r in rows if "check_max_mm" in r])}
-
-
-def hybrid_goal(rows: list) -> dict:
-    """Network guess + accurate inverse to tolerance against the accurate preset from the ED mesh:
-    mean time ratio (goal ≤ 0.3) and the largest max nodal distance between their answers (≤ 0.01 mm)."""
-    hyb = [r for r in rows if r["method"] == "hybrid accurate to tol" and r.get("vs_cold_max_mm") is not None]
-    if not hyb:
-        return {"cases": 0}
-    cold = {(r["shape"], r["nodes"], r["case"]): r["wall_s"] for r in rows if r["method"] == "fe accurate"}
-    t_h = float(np.mean([r["wall_s"] for r in hyb]))
-    t_c = float(np.mean([cold[(r["shape"], r["nodes"], r["case"])] for r in hyb]))
-    return {"cases": len(hyb), "hybrid_s_mean": t_h, "cold_s_mean": t_c, "time_ratio": t_h / t_c,
-            "max_distance_mm": float(max(r["vs_cold_max_mm"] for r in hyb))}
-
-
-# ---- report
-
-def _f(x, digits: int = 3) -> str:
-    return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}f}"
-
-
-def markdown_report(result: dict, header: str = "") -> str:
-    lines = [header, "", "## Error against the converged solution and time per case", "",
-             f"Reference: {result['reference']} ({result['base']} base, {result['fibres']} fibres); held-out "
-             "shapes; error = nodal distance of the unloaded geometry (mm); time = one case on one core, "
-             "split into network (features, linear response, forward pass), FE assembly, sparse solves and other.",
-             "",
-             "| mesh | method | ok | mean | p95 | max | time mean s | time p95 s | network | assembly | linear | other |",
-             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for s in result["summary"]:
-        lines.append(f"| {s['resolution']} ({s['nodes']}) | {s['method']} | {s['ok']}/{s['cases']} | {_f(s.get('mean_mm'))} "
-                     f"| {_f(s.get('p95_mm'))} | {_f(s.get('max_mm'))} | {_f(s['time_mean_s'], 2)} | "
-                     f"{_f(s['time_p95_s'], 2)} | {_f(s['network_s'], 2)} | {_f(s['assembly_s'], 2)} | "
-                     f"{_f(s['linear_s'], 2)} | {_f(s['other_s'], 2)} |")
-    g = result["hybrid_goal"]
-    if g.get("cases"):
-        lines += ["", "## Hybrid against the accurate preset from the ED mesh", "",
-                  f"Network guess + accurate inverse to tolerance: {_f(g['hybrid_s_mean'], 2)} s against "
-                  f"{_f(g['cold_s_mean'], 2)} s cold (ratio {_f(g['time_ratio'], 2)}, goal ≤ 0.30); answers within "
-                  f"{g['max_distance_mm']:.1e} mm (max nodal, goal ≤ 0.01 mm) over {g['cases']} cases."]
-    c = result["check"]
-    lines += ["", "## The a-posteriori check (inflating the answer again, as unload's check does) against the true error", ""]
-    for label, t in (("network alone", c["gnn"]), ("every checked answer", c["all"])):
-        if t.get("answers"):
-            lines.append(f"- {label}, {t['answers']} answers: Spearman {_f(t['spearman_max'], 2)} (max nodal), "
-                         f"{_f(t['spearman_mean'], 2)} (mean); true error ≈ {_f(t['true_over_estimate_median'], 2)} × "
-                         f"the re-inflation distance (median); {_f(t['check_s_mean'], 2)} s per check.")
-    failed = [r for r in result["rows"] if "failed" in r]
-    if failed:
-        lines += ["", "## Failures", ""] + [f"- shape {r['shape']}, {r['nodes']} nodes, {r['case']}, {r['method']}: "
-                                            f"{r['failed']}" for r in failed]
-    return "\n".join(lines) + "\n"
-
-
-def plot_report(result: dict, path: Path) -> None:
-    """Pareto plot: time per case (log) against p95 nodal error (log), one marker per method and mesh."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 5.5))
-    colours = {"gnn": "tab:purple", "fe": "tab:blue", "hybrid": "tab:orange"}
-    markers = {"training": "o", "user": "s"}
-    for s in result["summary"]:
-        if "p95_mm" not in s:
-            continue
-        family = s["method"].split()[0]
-        ax.scatter(s["time_mean_s"], s["p95_mm"], c=colours[family], marker=markers[s["resolution"]], s=36)
-        ax.annotate(s["method"], (s["time_mean_s"], s["p95_mm"]), fontsize=6, xytext=(3, 2), textcoords="offset points")
-    for res, m in markers.items():
-        ax.scatter([], [], c="grey", marker=m, label=f"{res} meshes")
-    for fam, col in colours.items():
-        ax.scatter([], [], c=col, marker="o", label=fam)
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("time per case, s (one CPU core)")
-    ax.set_ylabel("p95 nodal error against the converged solution, mm")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
-
-
-def write_report(result: dict, out_dir: Path, header: str = "") -> dict:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    md, png, js = out_dir / "trade.md", out_dir / "trade.png", out_dir / TRADE_FILE
-    md.write_text(markdown_report(result, header))
-    plot_report(result, png)
-    tmp = js.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result, indent=1, default=float))
-    tmp.replace(js)
-    return {"markdown": md, "plot": png, "json": js}

@@ -16,7 +16,8 @@ from solver.reinflate import reinflation_error
 from storage.meshfiles import write_mesh
 from trainer.errors import TrainerError
 from app.method_choice import Method, choose_method, parse_method
-from bench.trade import TradeSpec, box_cases, held_out_cases, run_trade, write_report
+from bench.trade import TradeSpec, box_cases, held_out_cases, run_trade
+from bench.trade_table import write_report
 from trainer_fixtures import lv_mesh, make_tiny_store
 
 runner = CliRunner()
@@ -133,22 +134,27 @@ def test_trade_table_on_a_tiny_run(trained, tmp_path, monkeypatch):
                         real(ed, params, "accurate" if preset == "reference" else preset, *a, **k))
     spec = TradeSpec((str(trained),), shapes=1, cases=1, user_nodes=0, hybrid_updates=(1,))
     result = run_trade(spec, tmp_path / "solves")
-    methods = {r["method"] for r in result["rows"]}
+    methods = {r.method for r in result.rows}
     assert methods == {"gnn", "fe fast", "fe accurate", "fe adaptive 0.05", "hybrid fast +1", "hybrid accurate +1",
                        "hybrid fast to tol", "hybrid accurate to tol"}
-    rows = {r["method"]: r for r in result["rows"]}
-    assert rows["fe accurate"]["max_mm"] < 1e-3  # the stand-in reference is accurate's own answer
-    assert rows["hybrid accurate to tol"]["vs_cold_max_mm"] < 1e-2
-    assert rows["fe fast"]["mean_mm"] > rows["fe accurate"]["mean_mm"]
-    assert "check_max_mm" in rows["gnn"] and "check_max_mm" not in rows["fe fast"]
-    assert result["hybrid_goal"]["cases"] == 1
+    rows = {r.method: r for r in result.rows}
+    assert rows["fe accurate"].max_mm < 1e-3  # the stand-in reference is accurate's own answer
+    assert rows["hybrid accurate to tol"].vs_cold_max_mm < 1e-2
+    assert rows["fe fast"].mean_mm > rows["fe accurate"].mean_mm
+    assert rows["gnn"].check_max_mm is not None and rows["fe fast"].check_max_mm is None
+    assert result.hybrid_goal.cases == 1 and result.check_network.answers == 1
     paths = write_report(result, trained / "trade")
     assert paths["plot"].stat().st_size > 0 and "| training" in paths["markdown"].read_text()
-    assert json.loads(paths["json"].read_text())["summary"]
+    written = json.loads(paths["json"].read_text())
+    assert written["summary"] == [s.as_dict() for s in result.summary]
+    assert "check_max_mm" not in next(r for r in written["rows"] if r["method"] == "fe fast")
+    # the table --method auto reads: the cheapest method that met a tolerance
+    assert choose_method(written, 10.0, result.summary[0].nodes, False).label == min(
+        (s for s in result.summary if s.ok == s.cases), key=lambda s: s.time_mean_s).method
     # --network-only: the network scored against the same (cached) reference, no FE or hybrid method
     alone = run_trade(replace(spec, network_only=True), tmp_path / "solves")
-    assert [r["method"] for r in alone["rows"]] == ["gnn"] and alone["hybrid_goal"] == {"cases": 0}
-    assert alone["rows"][0]["mean_mm"] == pytest.approx(rows["gnn"]["mean_mm"])
+    assert [r.method for r in alone.rows] == ["gnn"] and alone.hybrid_goal.cases == 0
+    assert alone.rows[0].mean_mm == pytest.approx(rows["gnn"].mean_mm)
 
 
 def test_unload_auto_and_check(trained, tmp_path):

@@ -12,6 +12,7 @@ import typer
 from .console import json_line, machine_line
 
 if TYPE_CHECKING:
+    from bench.trade_table import TradeResult
     from solver.land_problems import Land1Result, Land2Result
 
 
@@ -133,20 +134,20 @@ def print_convergence(result: dict, paths: dict) -> None:
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}")
 
 
-def print_trade(result: dict, paths: dict) -> None:
+def print_trade(result: "TradeResult", paths: dict) -> None:
     """`bench trade`: each method's error against the converged solution and time, the hybrid's goal and
     how well --check tracks the network's error."""
-    for srow in result["summary"]:
-        err = (f"mean {srow['mean_mm']:.3f} / p95 {srow['p95_mm']:.3f} / max {srow['max_mm']:.3f} mm"
-               if "mean_mm" in srow else "no answer")
-        typer.echo(f"{srow['resolution']:>8} ({srow['nodes']:>4} nodes) {srow['method']:<22} {srow['ok']}/{srow['cases']} "
-                   f"{err}, {srow['time_mean_s']:.2f} s per case")
-    goal = result["hybrid_goal"]
-    if goal.get("cases"):
-        typer.echo(f"hybrid accurate to tolerance: {goal['time_ratio']:.2f} × the cold accurate time (goal ≤ 0.30), "
-                   f"answers within {goal['max_distance_mm']:.1e} mm (goal ≤ 0.01)")
-    track = result["check"]["gnn"]
-    if track.get("answers"):
-        typer.echo(f"--check on the network's answers: Spearman {track['spearman_max']:.2f} with the true max error "
-                   f"(goal ≥ 0.8); true ≈ {track['true_over_estimate_median']:.2f} × the check")
+    for srow in result.summary:
+        err = (f"mean {srow.mean_mm:.3f} / p95 {srow.p95_mm:.3f} / max {srow.max_mm:.3f} mm"
+               if srow.mean_mm is not None else "no answer")
+        typer.echo(f"{srow.resolution:>8} ({srow.nodes:>4} nodes) {srow.method:<22} {srow.ok}/{srow.cases} "
+                   f"{err}, {srow.time_mean_s:.2f} s per case")
+    goal = result.hybrid_goal
+    if goal.cases:
+        typer.echo(f"hybrid accurate to tolerance: {goal.time_ratio:.2f} × the cold accurate time (goal ≤ 0.30), "
+                   f"answers within {goal.max_distance_mm:.1e} mm (goal ≤ 0.01)")
+    track = result.check_network
+    if track.answers:
+        typer.echo(f"--check on the network's answers: Spearman {track.spearman_max:.2f} with the true max error "
+                   f"(goal ≥ 0.8); true ≈ {track.true_over_estimate_median:.2f} × the check")
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}, {paths['json']}")
