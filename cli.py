@@ -226,7 +226,7 @@ def bench_adaptive(shapes: str = typer.Option("mean", "--shapes", help="Comma-se
         spec = AdaptiveSpec(split_names(shapes), split_names(cases), nodes,
                             parse_tolerances(split_names(tolerance)), base.value, fibres).validate()
         result = run_adaptive(spec, progress=typer.echo)
-    print_adaptive_bench(result, write_report(result, out, report_header("adaptive", f", solver sha256:{result['solver']}; "
+    print_adaptive_bench(result, write_report(result, out, report_header("adaptive", f", solver sha256:{result.solver}; "
                                                                    f"base {base.value}, {fibres} fibres.", threads)))
 
 

@@ -106,19 +106,83 @@ def true_local_error(ed_mesh: TetMesh, coarse_X: np.ndarray, coarse_u: np.ndarra
     return np.sqrt(np.bincount(parent, weights=diff2, minlength=len(ed_mesh.tets)))
 
 
-def ranking(indicator: np.ndarray, true: np.ndarray) -> dict:
+@dataclass(frozen=True, kw_only=True)
+class IndicatorRanking:
+    """How η ranks the true local error: Spearman, the share of Σ true² in η's top TOP_SHARE of tets, and
+    the best possible share (the true top TOP_SHARE's)."""
+
+    spearman: float
+    top_share: float
+    best_share: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class ToleranceRun:
+    """The adaptive unload at one tolerance (p95, mm): its error against the reference (`nodal_error`'s
+    fields, mm), its time (s) and that time over the reference's, whether it met the tolerance, its own
+    estimate of the p95 error and estimate / true, and each refinement step (AdaptiveStep's fields)."""
+
+    tolerance_mm: float
+    error: dict
+    wall_s: float
+    time_vs_reference: float
+    met: bool
+    estimate_p95_mm: float
+    effectivity: float
+    steps: list[dict]
+
+
+@dataclass(frozen=True, kw_only=True)
+class AdaptiveCase:
+    """One shape × case: the mesh's nodes, the reference's nodes and time (s), the indicator's ranking,
+    `accurate`'s error against the reference (mm) and time (s), and the adaptive unload at each tolerance."""
+
+    shape: str
+    case: str
+    nodes: int
+    reference_s: float
+    reference_nodes: int
+    ranking: IndicatorRanking
+    accurate_error: dict
+    accurate_s: float
+    adaptive: list[ToleranceRun]
+
+    def as_dict(self) -> dict:
+        """adaptive.json's row layout: the errors flattened beside their times."""
+        return {"shape": self.shape, "case": self.case, "nodes": self.nodes, "reference_s": self.reference_s,
+                "reference_nodes": self.reference_nodes, "ranking": asdict(self.ranking),
+                "accurate": {**self.accurate_error, "wall_s": self.accurate_s},
+                "adaptive": [{"tolerance_mm": a.tolerance_mm, **a.error, "wall_s": a.wall_s,
+                              "time_vs_reference": a.time_vs_reference, "met": a.met,
+                              "estimate_p95_mm": a.estimate_p95_mm, "effectivity": a.effectivity, "steps": a.steps}
+                             for a in self.adaptive]}
+
+
+@dataclass(frozen=True, kw_only=True)
+class AdaptiveBenchResult:
+    """`bench adaptive`'s result: the spec (AdaptiveSpec's fields), the solver digest, every case."""
+
+    spec: dict
+    solver: str
+    rows: list[AdaptiveCase]
+
+    def as_dict(self) -> dict:
+        return {"spec": self.spec, "solver": self.solver, "rows": [r.as_dict() for r in self.rows]}
+
+
+def ranking(indicator: np.ndarray, true: np.ndarray) -> IndicatorRanking:
     """Spearman correlation of η with the true local error, and the share of Σ true² in η's top
     TOP_SHARE of tets against the best possible share (the true top TOP_SHARE's)."""
     from scipy.stats import spearmanr
 
     k = max(1, int(round(TOP_SHARE * len(true))))
     total = float((true ** 2).sum())
-    return {"spearman": float(spearmanr(indicator, true).statistic),
-            "top_share": float((true[np.argsort(-indicator)[:k]] ** 2).sum() / total),
-            "best_share": float((np.sort(true)[::-1][:k] ** 2).sum() / total)}
+    return IndicatorRanking(spearman=float(spearmanr(indicator, true).statistic),
+                            top_share=float((true[np.argsort(-indicator)[:k]] ** 2).sum() / total),
+                            best_share=float((np.sort(true)[::-1][:k] ** 2).sum() / total))
 
 
-def _case(spec: AdaptiveSpec, shape: str, case: str, progress=None) -> dict:
+def _case(spec: AdaptiveSpec, shape: str, case: str, progress=None) -> AdaptiveCase:
     ed = mesh_lv(convergence_shape(shape), spec.nodes)
     params: CaseParameters = CASES[case]
     say = progress or (lambda text: None)
@@ -137,10 +201,7 @@ def _case(spec: AdaptiveSpec, shape: str, case: str, progress=None) -> dict:
     eta = gradient_indicator(accurate.unloaded_nodes, ed.tets, displacement_at_dofs(accurate))
     true = true_local_error(ed, accurate.unloaded_nodes, displacement_at_dofs(accurate), whole.mesh,
                             fine.unloaded_nodes, displacement_at_dofs(fine), whole.parent, whole.fine_ids)
-    row = {"shape": shape, "case": case, "nodes": ed.n_nodes, "reference_s": reference_s,
-           "reference_nodes": whole.mesh.n_nodes, "ranking": ranking(eta, true),
-           "accurate": {**nodal_error(accurate.unloaded_nodes, reference, ed.nodes), "wall_s": accurate_s},
-           "adaptive": []}
+    runs = []
     for tol in spec.tolerances:
         say(f"  {shape} {case}: adaptive to {tol:g} mm …")
         t0 = time.perf_counter()
@@ -148,58 +209,59 @@ def _case(spec: AdaptiveSpec, shape: str, case: str, progress=None) -> dict:
         wall = time.perf_counter() - t0
         err = nodal_error(result.unloaded_nodes, reference, ed.nodes)
         estimate = result.steps[-1].estimate_p95_mm
-        row["adaptive"].append({"tolerance_mm": tol, **err, "wall_s": wall, "time_vs_reference": wall / reference_s,
-                                "met": result.met, "estimate_p95_mm": estimate,
-                                "effectivity": estimate / err["p95_mm"] if err["p95_mm"] > 0 else float("nan"),
-                                "steps": [asdict(s) for s in result.steps]})
-    return row
+        runs.append(ToleranceRun(tolerance_mm=tol, error=err, wall_s=wall, time_vs_reference=wall / reference_s,
+                                 met=result.met, estimate_p95_mm=estimate,
+                                 effectivity=estimate / err["p95_mm"] if err["p95_mm"] > 0 else float("nan"),
+                                 steps=[asdict(s) for s in result.steps]))
+    return AdaptiveCase(shape=shape, case=case, nodes=ed.n_nodes, reference_s=reference_s,
+                        reference_nodes=whole.mesh.n_nodes, ranking=ranking(eta, true),
+                        accurate_error=nodal_error(accurate.unloaded_nodes, reference, ed.nodes),
+                        accurate_s=accurate_s, adaptive=runs)
 
 
-def run_adaptive(spec: AdaptiveSpec, progress=None) -> dict:
+def run_adaptive(spec: AdaptiveSpec, progress=None) -> AdaptiveBenchResult:
     """Every shape × case of the spec (module docstring)."""
     spec = spec.validate()
     rows = [_case(spec, shape, case, progress) for shape in spec.shapes for case in spec.cases]
-    return {"spec": asdict(spec), "solver": solver_digest(), "rows": rows}
+    return AdaptiveBenchResult(spec=asdict(spec), solver=solver_digest(), rows=rows)
 
 
 def _f(x, digits: int = 3) -> str:
     return "–" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{digits}f}"
 
 
-def markdown_report(result: dict, header: str = "") -> str:
+def markdown_report(result: AdaptiveBenchResult, header: str = "") -> str:
     lines = [header, "", "Error against `reference` (the mesh refined once in full), mm at the ED mesh's vertices; "
              "time of the whole unload, s.", "",
              "| shape | case | nodes | accurate mean / p95, time | tolerance | adaptive mean / p95 | estimated p95 "
              "(estimate / true) | met | finest mesh (ED tets split) | time | × reference's time |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for r in result["rows"]:
-        a = r["accurate"]
-        for ad in r["adaptive"]:
-            last = ad["steps"][-1]
-            lines.append(f"| {r['shape']} | {r['case']} | {r['nodes']} | {_f(a['mean_mm'])} / {_f(a['p95_mm'])}, "
-                         f"{a['wall_s']:.1f} | {ad['tolerance_mm']:g} | {_f(ad['mean_mm'])} / {_f(ad['p95_mm'])} | "
-                         f"{_f(ad['estimate_p95_mm'])} ({_f(ad['effectivity'], 2)}) | {'yes' if ad['met'] else 'no'} | "
-                         f"{last['nodes']:,} ({last['split_tets']} of {ad['steps'][0]['tets']}) | {ad['wall_s']:.1f} | "
-                         f"{_f(ad['time_vs_reference'], 2)} |")
-    references = ", ".join(f"{r['shape']} {r['case']} {r['reference_nodes']:,} nodes {r['reference_s']:.1f} s"
-                           for r in result["rows"])
+    for r in result.rows:
+        a = r.accurate_error
+        for ad in r.adaptive:
+            last = ad.steps[-1]
+            lines.append(f"| {r.shape} | {r.case} | {r.nodes} | {_f(a['mean_mm'])} / {_f(a['p95_mm'])}, "
+                         f"{r.accurate_s:.1f} | {ad.tolerance_mm:g} | {_f(ad.error['mean_mm'])} / {_f(ad.error['p95_mm'])} | "
+                         f"{_f(ad.estimate_p95_mm)} ({_f(ad.effectivity, 2)}) | {'yes' if ad.met else 'no'} | "
+                         f"{last['nodes']:,} ({last['split_tets']} of {ad.steps[0]['tets']}) | {ad.wall_s:.1f} | "
+                         f"{_f(ad.time_vs_reference, 2)} |")
+    references = ", ".join(f"{r.shape} {r.case} {r.reference_nodes:,} nodes {r.reference_s:.1f} s" for r in result.rows)
     lines += ["", f"Reference: {references}.",
               "", "Indicator ranking (η_K against ‖∇u_ref − ∇u_h‖ over K, accurate on the mesh):", "",
               f"| shape | case | Spearman | share of Σ true² in η's top {TOP_SHARE:.0%} | best possible share |",
               "| --- | --- | --- | --- | --- |"]
-    for r in result["rows"]:
-        k = r["ranking"]
-        lines.append(f"| {r['shape']} | {r['case']} | {_f(k['spearman'], 2)} | {_f(k['top_share'], 2)} | "
-                     f"{_f(k['best_share'], 2)} |")
+    for r in result.rows:
+        k = r.ranking
+        lines.append(f"| {r.shape} | {r.case} | {_f(k.spearman, 2)} | {_f(k.top_share, 2)} | {_f(k.best_share, 2)} |")
     return "\n".join(lines) + "\n"
 
 
-def write_report(result: dict, out_dir: Path, header: str = "") -> dict:
+def write_report(result: AdaptiveBenchResult, out_dir: Path, header: str = "") -> dict:
     """adaptive.md and adaptive.json in `out_dir`; returns their paths."""
     import json
 
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out_dir / "adaptive.md", "json": out_dir / "adaptive.json"}
     paths["markdown"].write_text(markdown_report(result, header))
-    paths["json"].write_text(json.dumps(result, indent=1))
+    paths["json"].write_text(json.dumps(result.as_dict(), indent=1))
     return paths

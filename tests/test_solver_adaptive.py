@@ -139,3 +139,26 @@ def test_adaptive_unload_is_nearer_the_converged_answer(lv):
     assert loose.met and len(loose.steps) == 2
     with pytest.raises(ValueError, match="tolerance_mm"):
         adaptive_unload(lv, MID, tolerance_mm=float("nan"))
+
+
+@pytest.mark.slow
+def test_bench_adaptive_scores_the_indicator_and_each_tolerance_against_the_refined_solve(tmp_path):
+    """`bench adaptive` on one small case: the indicator ranks the true local error better than chance,
+    a loose tolerance is met after the first estimate's refinement, a tighter one refines at least as far
+    and lands nearer the reference than `accurate`,
+    and the report's JSON holds every figure."""
+    import json
+
+    from bench.adaptive import AdaptiveSpec, run_adaptive, write_report
+
+    result = run_adaptive(AdaptiveSpec(cases=("mid",), nodes=150, tolerances=(5.0, 0.02)))
+    (case,) = result.rows
+    assert case.reference_nodes > case.nodes and case.reference_s > 0
+    assert 0.0 < case.ranking.spearman <= 1.0 and case.ranking.top_share <= case.ranking.best_share + 1e-12
+    loose, tight = case.adaptive
+    assert loose.met and len(loose.steps) <= 2 and len(tight.steps) >= len(loose.steps)
+    assert tight.error["mean_mm"] < case.accurate_error["mean_mm"]
+    paths = write_report(result, tmp_path, "# adaptive")
+    written = json.loads(paths["json"].read_text())
+    assert written["rows"][0]["adaptive"][1]["mean_mm"] == tight.error["mean_mm"]
+    assert "| mean | mid |" in paths["markdown"].read_text()

@@ -12,6 +12,7 @@ import typer
 from .console import json_line, machine_line
 
 if TYPE_CHECKING:
+    from bench.adaptive import AdaptiveBenchResult
     from bench.trade_table import TradeResult
     from solver.land_problems import Land1Result, Land2Result
 
@@ -104,17 +105,17 @@ def print_corners(rows: list, presets: list, out: Path | None, header: str) -> N
         typer.echo(f"report: {out / 'stability.md'}")
 
 
-def print_adaptive_bench(result: dict, paths: dict) -> None:
+def print_adaptive_bench(result: "AdaptiveBenchResult", paths: dict) -> None:
     """`bench adaptive`: per case, the indicator's ranking and each tolerance's error, estimate and time."""
-    for r in result["rows"]:
-        k = r["ranking"]
-        typer.echo(f"{r['shape']:>6} {r['case']:>4} {r['nodes']} nodes: indicator Spearman {k['spearman']:.2f}, "
-                   f"top 20 % holds {k['top_share']:.0%} of the true error² (best {k['best_share']:.0%}); accurate "
-                   f"{r['accurate']['mean_mm']:.3f} mm mean, {r['accurate']['wall_s']:.1f} s; reference {r['reference_s']:.1f} s")
-        for a in r["adaptive"]:
-            typer.echo(f"{'':>12} adaptive to {a['tolerance_mm']:g} mm: {a['mean_mm']:.3f} mm mean / {a['p95_mm']:.3f} p95 "
-                       f"(estimated p95 {a['estimate_p95_mm']:.3f}, {'met' if a['met'] else 'not met'}), {a['wall_s']:.1f} s "
-                       f"= {a['time_vs_reference']:.2f} × reference")
+    for r in result.rows:
+        k = r.ranking
+        typer.echo(f"{r.shape:>6} {r.case:>4} {r.nodes} nodes: indicator Spearman {k.spearman:.2f}, "
+                   f"top 20 % holds {k.top_share:.0%} of the true error² (best {k.best_share:.0%}); accurate "
+                   f"{r.accurate_error['mean_mm']:.3f} mm mean, {r.accurate_s:.1f} s; reference {r.reference_s:.1f} s")
+        for a in r.adaptive:
+            typer.echo(f"{'':>12} adaptive to {a.tolerance_mm:g} mm: {a.error['mean_mm']:.3f} mm mean / "
+                       f"{a.error['p95_mm']:.3f} p95 (estimated p95 {a.estimate_p95_mm:.3f}, "
+                       f"{'met' if a.met else 'not met'}), {a.wall_s:.1f} s = {a.time_vs_reference:.2f} × reference")
     typer.echo(f"report: {paths['markdown']}")
 
 
