@@ -521,3 +521,15 @@ def test_unload_adaptive_writes_its_error_estimate(lv_file, tmp_path):
         r = run(*base, *extra)
         assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
         assert not out.exists()
+
+
+def test_bench_solver_times_each_preset_at_both_cases_and_its_pairs_round_trip():
+    """`bench solver --json`: one line per preset and case, its time split adding up, its pair's round trip
+    within the preset's tolerance."""
+    r = run("bench", "solver", "--fidelity", "fast", "--nodes", 150, "--json")
+    assert r.exit_code == 0, r.output
+    rows = [json.loads(line) for line in r.output.strip().splitlines() if line.startswith("{")]
+    assert [(row["fidelity"], row["case"].split()[0]) for row in rows] == [("fast", "mid"), ("fast", "extreme")]
+    for row in rows:
+        assert row["forward_assembly_s"] + row["forward_linear_s"] + row["forward_other_s"] == pytest.approx(row["forward_s"])
+        assert row["roundtrip_mm"] < 1e-3 and row["inverse_updates"] >= 1 and row["dofs"] > 3 * row["nodes"] // 2

@@ -13,6 +13,7 @@ from .console import json_line, machine_line
 
 if TYPE_CHECKING:
     from bench.adaptive import AdaptiveBenchResult
+    from bench.solver_speed import SolverTiming
     from bench.trade_table import TradeResult
     from solver.land_problems import Land1Result, Land2Result
 
@@ -55,11 +56,11 @@ def print_land(result: Land1Result | Land2Result, as_json: bool) -> None:
                    f"cavity {r.cavity_volume_mm3:.0f} mm³ (ref ≈10734)")
 
 
-def print_solver_bench(rows: list, shape: int, nodes: int, threads: int, as_json: bool) -> None:
+def print_solver_bench(rows: list["SolverTiming"], shape: int, nodes: int, threads: int, as_json: bool) -> None:
     """`bench solver`: a JSON line per row, or the timing table."""
     if as_json:
         for row in rows:
-            typer.echo(json_line(row))
+            typer.echo(json_line(row.as_dict()))
         return
     from rich.console import Console
     from rich.table import Table
@@ -69,11 +70,11 @@ def print_solver_bench(rows: list, shape: int, nodes: int, threads: int, as_json
                 "pair asm/lin/other s", "pair Newton", "round trip mm"):
         table.add_column(col, justify="right")
     for r in rows:
-        table.add_row(r["fidelity"], r["case"], str(r["nodes"]), str(r["dofs"]), f"{r['forward_s']:.2f}",
-                      f"{r['forward_assembly_s']:.2f}/{r['forward_linear_s']:.2f}/{r['forward_other_s']:.2f}",
-                      str(r["forward_newton"]), f"{r['pair_s']:.2f}",
-                      f"{r['pair_assembly_s']:.2f}/{r['pair_linear_s']:.2f}/{r['pair_other_s']:.2f}",
-                      str(r["pair_newton"]), f"{r['roundtrip_mm']:.1e}")
+        table.add_row(r.fidelity, r.case, str(r.nodes), str(r.dofs), f"{r.forward_s:.2f}",
+                      f"{r.forward_assembly_s:.2f}/{r.forward_linear_s:.2f}/{r.forward_other_s:.2f}",
+                      str(r.forward_newton), f"{r.pair_s:.2f}",
+                      f"{r.pair_assembly_s:.2f}/{r.pair_linear_s:.2f}/{r.pair_other_s:.2f}",
+                      str(r.pair_newton), f"{r.roundtrip_mm:.1e}")
     Console(width=200).print(table)
 
 
