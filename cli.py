@@ -175,7 +175,7 @@ def bench_corners(fidelity: list[FidelityName] = typer.Option(None, "--fidelity"
         if "reference" in presets:
             raise ValueError("--fidelity reference is not a stability target (it is accurate on a refined mesh)")
         nodes = nodes or (350 if extended else 800)
-        echo = (lambda r: typer.echo(json_line(r))) if as_json else (lambda r: typer.echo(format_row(r)))
+        echo = (lambda r: typer.echo(json_line(r.as_dict()))) if as_json else (lambda r: typer.echo(format_row(r)))
         rows = [row for box in ((PAPER_BOX, EXTENDED_BOX) if extended else (PAPER_BOX,))
                 for row in run_stability(presets, box, nodes, base.value, fibres, progress=echo)]
     print_corners(rows, presets, out, report_header("corners", f"; {base.value} base, {fibres} fibres, ~{nodes}-node meshes."))

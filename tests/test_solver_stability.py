@@ -4,6 +4,7 @@ that must fail with its reason and no answer."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -30,16 +31,16 @@ def test_corners_hardest_first():
 @pytest.mark.parametrize("preset", ["fast", "accurate"])
 def test_hardest_extended_corner_converges(extreme_mesh, preset):
     row = stability_case(extreme_mesh, CaseParameters(30.0, 20.0, 80.0, -80.0), preset)
-    assert row["ok"], row
-    assert row["finite"] and row["roundtrip_mm"] <= 1e-3 and row["min_jacobian"] > 0
-    assert 0 < row["q_max"] < Q_OVERFLOW and row["q_headroom"] > 600
-    assert row["step_cuts"] > 0  # this load needs its steps cut back: the path is exercised
-    table = region_table([dict(row, box="extended", shape="all −2 SD")])
+    assert row.ok, row
+    assert row.finite and row.roundtrip_mm <= 1e-3 and row.min_jacobian > 0
+    assert 0 < row.q_max < Q_OVERFLOW and row.q_headroom > 600
+    assert row.step_cuts > 0  # this load needs its steps cut back: the path is exercised
+    table = region_table([replace(row, box="extended", shape="all −2 SD")])
     assert "| extended | 30 | 20 | " + preset + " | 1/1 |" in table
 
 
 def test_beyond_the_box_fails_with_its_reason(extreme_mesh):
     row = stability_case(extreme_mesh, CaseParameters(40.0, 5.0, 80.0, -80.0), "fast")
-    assert not row["ok"] and "roundtrip_mm" not in row and "unloaded" not in row
-    assert "step size collapsed" in row["reason"] and math.isfinite(row["wall_s"])
-    assert "0/1" in region_table([dict(row, box="extended", shape="all −2 SD")])
+    assert not row.ok and not row.solved and "roundtrip_mm" not in row.as_dict()
+    assert "step size collapsed" in row.reason and math.isfinite(row.wall_s)
+    assert "0/1" in region_table([replace(row, box="extended", shape="all −2 SD")])

@@ -14,6 +14,7 @@ from .console import json_line, machine_line
 if TYPE_CHECKING:
     from bench.adaptive import AdaptiveBenchResult
     from bench.solver_speed import SolverTiming
+    from bench.stability import CornerCase
     from bench.trade_table import TradeResult
     from solver.land_problems import Land1Result, Land2Result
 
@@ -84,25 +85,25 @@ def report_header(title: str, details: str, threads: int = 1) -> str:
             f"Command: `heartctl {' '.join(sys.argv[1:])}`\n")
 
 
-def print_corners(rows: list, presets: list, out: Path | None, header: str) -> None:
+def print_corners(rows: list["CornerCase"], presets: list, out: Path | None, header: str) -> None:
     """`bench corners`: per box and preset, how many pairs converged and their extremes; with `out`,
     the region table and every row written there."""
     from bench.stability import region_table
 
-    for box in sorted({r["box"] for r in rows}):
+    for box in sorted({r.box for r in rows}):
         for preset in presets:
-            rs = [r for r in rows if r["box"] == box and r["preset"] == preset]
-            ok = [r for r in rs if r["ok"]]
-            bad = sum(1 for r in rs if "finite" in r and not r["finite"])
+            rs = [r for r in rows if r.box == box and r.preset == preset]
+            ok = [r for r in rs if r.ok]
+            bad = sum(1 for r in rs if r.finite is False)
             typer.echo(f"{box} box, {preset}: {len(ok)}/{len(rs)} converged, worst round trip "
-                       f"{max((r['roundtrip_mm'] for r in ok), default=float('nan')):.1e} mm, min J "
-                       f"{min((r['min_jacobian'] for r in ok), default=float('nan')):.3f}, max Q "
-                       f"{max((r['q_max'] for r in ok), default=float('nan')):.1f}, {bad} non-finite answers, "
-                       f"{sum(r['wall_s'] for r in rs):.0f} s")
+                       f"{max((r.roundtrip_mm for r in ok), default=float('nan')):.1e} mm, min J "
+                       f"{min((r.min_jacobian for r in ok), default=float('nan')):.3f}, max Q "
+                       f"{max((r.q_max for r in ok), default=float('nan')):.1f}, {bad} non-finite answers, "
+                       f"{sum(r.wall_s for r in rs):.0f} s")
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "stability.md").write_text(header + "\n" + region_table(rows))
-        (out / "stability.json").write_text(json.dumps(rows, indent=1))
+        (out / "stability.json").write_text(json.dumps([r.as_dict() for r in rows], indent=1))
         typer.echo(f"report: {out / 'stability.md'}")
 
 
