@@ -195,8 +195,8 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
     finest answer's estimated own error (Richardson); and convergence in quadrature (each preset at
     several cell and facet degrees). Writes a Markdown table and a log-log PNG."""
     set_solver_threads(threads)
-    from bench.convergence import (ConvergenceSpec, parse_hierarchies, parse_quad_degrees, run_convergence,
-                                    write_report)
+    from bench.convergence import ConvergenceSpec, parse_hierarchies, parse_quad_degrees, run_convergence
+    from bench.convergence_report import write_report
 
     with failures():
         check_fibres(fibres)
@@ -204,7 +204,7 @@ def bench_convergence(shapes: str = typer.Option("mean,minus2,plus2", "--shapes"
                                base=base.value, fibres=fibres,
                                quad_degrees=parse_quad_degrees(quadrature)).validate()
         result = run_convergence(spec, out / "solves", progress=typer.echo)
-    details = f", solver sha256:{result['solver']}; base {base.value}, {fibres} fibres."
+    details = f", solver sha256:{result.solver}; base {base.value}, {fibres} fibres."
     print_convergence(result, write_report(result, out, report_header("convergence", details, threads)))
 
 

@@ -8,7 +8,6 @@ difference between its two finest levels. No Ray, Zarr or torch here; `heartctl 
 prints and writes the report."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
@@ -200,12 +199,105 @@ class SolveCache:
         tmp.replace(self._path(key))
 
 
-def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progress=None) -> dict:
-    """Every (shape, case, hierarchy, preset, level) unloaded and scored. Returns {"rows": per
-    solve, "orders": per (shape, case, hierarchy, preset): the differences of its levels, the
-    observed order (≥ 3 levels) and its finest level's estimated error; the accurate entries give
-    the reference's own error, "quadrature": per preset, quadrature variant and level (levels 0 and
-    1) its quadrature error and its error against the reference (`_quadrature_rows`)}."""
+@dataclass(frozen=True, kw_only=True)
+class LevelRow:
+    """One unloading of the study scored against the reference: shape, case, mesh hierarchy, preset,
+    refinement level, nodes, time (s), inverse updates, Newton iterations, why it failed (empty: it did
+    not), whether it started from the level below (`warm`), whether it is the reference itself, and
+    `nodal_error`'s figures against the reference (mm)."""
+
+    shape: str
+    case: str
+    hierarchy: str
+    preset: str
+    level: int
+    nodes: int
+    wall_s: float
+    updates: int
+    newton: int
+    failed: str
+    warm: bool
+    is_reference: bool
+    error: dict
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        return {**d, **d.pop("error")}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConvergenceOrder:
+    """One preset's levels on one hierarchy: the mean and max nodal differences of consecutive levels
+    (mm), the observed orders from the last three levels (nan with two), the order used for the estimate
+    (the deepest hierarchy's for the same shape, case and preset), and the finest level's estimated own
+    error, mean and max (mm)."""
+
+    shape: str
+    case: str
+    hierarchy: str
+    preset: str
+    level_diffs_mean_mm: list[float]
+    level_diffs_max_mm: list[float]
+    order_mean: float
+    order_max: float
+    order_used: float
+    finest_error_mean_mm: float
+    finest_error_max_mm: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True, kw_only=True)
+class QuadratureRow:
+    """One preset at one quadrature variant (cell / facet degree; `is_preset`: its own) on level 0 or 1 of
+    a mesh: nodes, time (s), `warm`, why it (or the highest-degree answer it is compared with) failed,
+    its `nodal_error` against the highest cell degree on the same mesh (`quadrature`) and against the
+    study's reference (`converged`, None for the reference itself); both None when it failed."""
+
+    shape: str
+    case: str
+    hierarchy: str
+    preset: str
+    quad_degree: int
+    facet_quad_degree: int
+    is_preset: bool
+    level: int
+    nodes: int
+    wall_s: float
+    warm: bool
+    failed: str
+    quadrature: dict | None = None
+    converged: dict | None = None
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        if self.failed:
+            del d["quadrature"], d["converged"]
+        return d
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConvergenceResult:
+    """`bench convergence`'s result: the spec (ConvergenceSpec's fields), the solver digest, every scored
+    unloading, every preset's orders, and the quadrature study's rows (empty without one)."""
+
+    spec: dict
+    solver: str
+    rows: list[LevelRow]
+    orders: list[ConvergenceOrder]
+    quadrature: list[QuadratureRow]
+
+    def as_dict(self) -> dict:
+        return {"spec": self.spec, "solver": self.solver, "rows": [r.as_dict() for r in self.rows],
+                "orders": [o.as_dict() for o in self.orders], "quadrature": [q.as_dict() for q in self.quadrature]}
+
+
+def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progress=None) -> ConvergenceResult:
+    """Every (shape, case, hierarchy, preset, level) unloaded and scored: a LevelRow per solve, a
+    ConvergenceOrder per (shape, case, hierarchy, preset) (the accurate ones give the reference's own
+    error), and with a quadrature study a QuadratureRow per preset, variant and level 0 or 1
+    (`_quadrature_rows`)."""
     spec.validate()
     cache = SolveCache(cache_dir)
     rows, orders, quadrature = [], [], []
@@ -236,29 +328,27 @@ def run_convergence(spec: ConvergenceSpec, cache_dir: Path | None = None, progre
                 for preset, levels in solves.items():
                     for s in levels:
                         err = nodal_error(s.unloaded, reference.unloaded, ed.nodes)
-                        rows.append({"shape": shape_name, "case": case, "hierarchy": hierarchy.name,
-                                     "preset": preset, "level": s.level, "nodes": s.nodes, "wall_s": s.wall_s,
-                                     "updates": s.updates, "newton": s.newton, "failed": s.failed, "warm": s.warm,
-                                     "is_reference": s is reference, **err})
+                        rows.append(LevelRow(shape=shape_name, case=case, hierarchy=hierarchy.name, preset=preset,
+                                             level=s.level, nodes=s.nodes, wall_s=s.wall_s, updates=s.updates,
+                                             newton=s.newton, failed=s.failed, warm=s.warm,
+                                             is_reference=s is reference, error=err))
                     diffs = [nodal_error(a.unloaded, b.unloaded, ed.nodes) for a, b in zip(levels[:-1], levels[1:])]
-                    entry = {"shape": shape_name, "case": case, "hierarchy": hierarchy.name, "preset": preset,
-                             "level_diffs_mean_mm": [d["mean_mm"] for d in diffs],
-                             "level_diffs_max_mm": [d["max_mm"] for d in diffs]}
+                    order_mean = order_max = float("nan")
                     if len(diffs) >= 2:
-                        entry["order_mean"] = observed_order(diffs[-2]["mean_mm"], diffs[-1]["mean_mm"])
-                        entry["order_max"] = observed_order(diffs[-2]["max_mm"], diffs[-1]["max_mm"])
-                        order_of.setdefault((shape_name, case, preset), entry["order_mean"])
-                    else:
-                        entry["order_mean"] = entry["order_max"] = float("nan")
+                        order_mean = observed_order(diffs[-2]["mean_mm"], diffs[-1]["mean_mm"])
+                        order_max = observed_order(diffs[-2]["max_mm"], diffs[-1]["max_mm"])
+                        order_of.setdefault((shape_name, case, preset), order_mean)
                     p = order_of.get((shape_name, case, preset), float("nan"))
-                    entry["order_used"] = p
-                    entry["finest_error_mean_mm"] = richardson_error(diffs[-1]["mean_mm"], p)
-                    entry["finest_error_max_mm"] = richardson_error(diffs[-1]["max_mm"], p)
-                    orders.append(entry)
+                    orders.append(ConvergenceOrder(
+                        shape=shape_name, case=case, hierarchy=hierarchy.name, preset=preset,
+                        level_diffs_mean_mm=[d["mean_mm"] for d in diffs], level_diffs_max_mm=[d["max_mm"] for d in diffs],
+                        order_mean=order_mean, order_max=order_max, order_used=p,
+                        finest_error_mean_mm=richardson_error(diffs[-1]["mean_mm"], p),
+                        finest_error_max_mm=richardson_error(diffs[-1]["max_mm"], p)))
                 if spec.quad_degrees:
                     quadrature += _quadrature_rows(spec, cache, shape_name, case, hierarchy, ed, solves, progress)
-    return {"spec": _spec_dict(spec), "solver": cache.digest, "rows": rows, "orders": orders,
-            "quadrature": quadrature}
+    return ConvergenceResult(spec=_spec_dict(spec), solver=cache.digest, rows=rows, orders=orders,
+                             quadrature=quadrature)
 
 
 @dataclass(frozen=True)
@@ -298,7 +388,7 @@ def quadrature_variants(preset: str, quad_degrees: tuple[int, ...]) -> list[Quad
 
 
 def _quadrature_rows(spec: ConvergenceSpec, cache: SolveCache, shape_name: str, case: str, hierarchy: Hierarchy,
-                     ed: TetMesh, solves: dict[str, list[LevelSolve]], progress) -> list[dict]:
+                     ed: TetMesh, solves: dict[str, list[LevelSolve]], progress) -> list[QuadratureRow]:
     """Each preset at each quadrature variant on levels 0 and 1 of one mesh. Per answer: its
     difference from the highest cell degree on the same mesh (the quadrature error alone) and from
     the convergence reference (the finest level of `accurate`: the error against an answer
@@ -329,15 +419,14 @@ def _quadrature_rows(spec: ConvergenceSpec, cache: SolveCache, shape_name: str, 
             top = answers[max((v for v in variants if v.facet_quad_degree == get_fidelity(preset).facet_quad_degree),
                               key=lambda v: v.quad_degree)]
             for v, s in answers.items():
-                row = {"shape": shape_name, "case": case, "hierarchy": hierarchy.name, "preset": preset,
-                       "quad_degree": v.quad_degree, "facet_quad_degree": v.facet_quad_degree,
-                       "is_preset": v.is_preset, "level": level, "nodes": s.nodes, "wall_s": s.wall_s,
-                       "warm": s.warm, "failed": s.failed or top.failed}
-                if not row["failed"]:
-                    row["quadrature"] = nodal_error(s.unloaded, top.unloaded, ed.nodes)
-                    row["converged"] = (None if s is reference
-                                        else nodal_error(s.unloaded, reference.unloaded, ed.nodes))
-                rows.append(row)
+                failed = s.failed or top.failed
+                scored = {} if failed else dict(
+                    quadrature=nodal_error(s.unloaded, top.unloaded, ed.nodes),
+                    converged=None if s is reference else nodal_error(s.unloaded, reference.unloaded, ed.nodes))
+                rows.append(QuadratureRow(shape=shape_name, case=case, hierarchy=hierarchy.name, preset=preset,
+                                          quad_degree=v.quad_degree, facet_quad_degree=v.facet_quad_degree,
+                                          is_preset=v.is_preset, level=level, nodes=s.nodes, wall_s=s.wall_s,
+                                          warm=s.warm, failed=failed, **scored))
     return rows
 
 
@@ -345,120 +434,3 @@ def _spec_dict(spec: ConvergenceSpec) -> dict:
     d = asdict(spec)
     d["hierarchies"] = [asdict(h) for h in spec.hierarchies]
     return d
-
-
-def _fmt(x: float, digits: int = 3) -> str:
-    return "–" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
-
-
-def markdown_report(result: dict, header: str = "") -> str:
-    """The report as Markdown: errors against the reference, observed orders, the reference's own error."""
-    lines = [header] if header else []
-    lines += ["## Nodal error of the unloaded geometry against the finest accurate answer (mm)", "",
-              "Reference: `accurate` on the hierarchy's finest mesh, same polyhedral domain, compared at the "
-              "base mesh's vertices. Time: one inverse solve from the ED geometry (what unloading by inverse FE does); the "
-              "references (†) start from the level below's answer.", "",
-              "| shape | case | mesh | preset | level | nodes | time s | mean | p95 | max | apex mean | base mean |",
-              "| --- | --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for r in result["rows"]:
-        if r["failed"]:
-            lines.append(f"| {r['shape']} | {r['case']} | {r['hierarchy']} | {r['preset']} | {r['level']} | "
-                         f"{r['nodes']} | {r['wall_s']:.1f} | failed: {r['failed']} | | | | |")
-            continue
-        vals = ("reference", "", "", "", "") if r["is_reference"] else tuple(
-            _fmt(r[k]) for k in ("mean_mm", "p95_mm", "max_mm", "apex_mean_mm", "base_mean_mm"))
-        lines.append(f"| {r['shape']} | {r['case']} | {r['hierarchy']} | {r['preset']} | {r['level']} | {r['nodes']} | "
-                     f"{r['wall_s']:.1f}{' †' if r['warm'] else ''} | " + " | ".join(vals) + " |")
-    lines += ["", "## Observed order and the finest answer's estimated own error", "",
-              "p = log2(d(h, h/2) / d(h/2, h/4)) from the mean (and max) nodal differences of consecutive levels; "
-              "the finest answer's error ≈ d_top / (2^p − 1) (mesh hierarchies with two levels use the order of "
-              "the same shape, case and preset on the deeper hierarchy).", "",
-              "| shape | case | mesh | preset | differences of levels, mean (max) mm | p (mean) | p (max) | finest error, mean (max) mm |",
-              "| --- | --- | --- | --- | --- | ---: | ---: | --- |"]
-    for o in result["orders"]:
-        diffs = ", ".join(f"{a:.3f} ({b:.3f})" for a, b in zip(o["level_diffs_mean_mm"], o["level_diffs_max_mm"]))
-        lines.append(f"| {o['shape']} | {o['case']} | {o['hierarchy']} | {o['preset']} | {diffs} | "
-                     f"{_fmt(o['order_mean'], 2)} | {_fmt(o['order_max'], 2)} | "
-                     f"{_fmt(o['finest_error_mean_mm'], 4)} ({_fmt(o['finest_error_max_mm'], 4)}) |")
-    if result.get("quadrature"):
-        lines += ["", *quadrature_markdown(result["quadrature"])]
-    return "\n".join(lines) + "\n"
-
-
-def quadrature_markdown(rows: list[dict]) -> list[str]:
-    """The quadrature study as Markdown lines: per preset, degree and level, the quadrature error
-    (against the highest cell degree on the same mesh) and the error against the converged answer."""
-    lines = ["## Convergence in quadrature", "",
-             "Each preset with its cell (q) and facet (f) quadrature degrees changed, on a mesh (level 0) and its "
-             "uniform refinement (level 1). *Quadrature error*: against the same preset, mesh and level at the "
-             "highest cell degree. *Against converged*: against the reference above (the finest `accurate` "
-             "answer). Mean (max) nodal distance of the unloaded geometry, mm; apex: the lowest "
-             f"{APEX_FRACTION:.0%} of the height. Preset's own degrees in bold; † started from level 0's answer.", "",
-             "| shape | case | mesh | preset | q / f | level | nodes | time s | quadrature error | apex | against converged | apex |",
-             "| --- | --- | --- | --- | --- | ---: | ---: | ---: | --- | ---: | --- | ---: |"]
-    for r in rows:
-        qf = f"{r['quad_degree']} / {r['facet_quad_degree']}"
-        qf = f"**{qf}**" if r["is_preset"] else qf
-        head = (f"| {r['shape']} | {r['case']} | {r['hierarchy']} | {r['preset']} | {qf} | {r['level']} | "
-                f"{r['nodes']} | {r['wall_s']:.1f}{' †' if r['warm'] else ''} | ")
-        if r["failed"]:
-            lines.append(head + f"failed: {r['failed']} | | | |")
-            continue
-        q, c = r["quadrature"], r["converged"]
-        conv = ("reference", "") if c is None else (f"{_fmt(c['mean_mm'], 4)} ({_fmt(c['max_mm'], 3)})",
-                                                    _fmt(c["apex_mean_mm"], 4))
-        lines.append(head + f"{_fmt(q['mean_mm'], 4)} ({_fmt(q['max_mm'], 4)}) | {_fmt(q['apex_mean_mm'], 4)} | "
-                     f"{conv[0]} | {conv[1]} |")
-    return lines
-
-
-def plot_report(result: dict, path: Path) -> None:
-    """Log-log PNG: mean nodal error against the reference vs time per case, one panel per case;
-    colour = preset, marker = mesh, line style = shape, the points of a line = refinement levels."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.lines import Line2D
-
-    cases = list(dict.fromkeys(r["case"] for r in result["rows"]))
-    fig, axes = plt.subplots(1, len(cases), figsize=(5.6 * len(cases) + 2.2, 4.6), squeeze=False)
-    colours = {"fast": "tab:orange", "accurate": "tab:blue"}
-    names = list(dict.fromkeys(r["hierarchy"] for r in result["rows"]))
-    markers = dict(zip(names, "os^Dv<>"))
-    shapes = list(dict.fromkeys(r["shape"] for r in result["rows"]))
-    styles = dict(zip(shapes, ("-", "--", ":", "-.")))
-    for ax, case in zip(axes[0], cases):
-        groups: dict[tuple, list] = {}
-        for r in result["rows"]:
-            if r["case"] == case and not r["is_reference"] and not r["failed"]:
-                groups.setdefault((r["shape"], r["hierarchy"], r["preset"]), []).append(r)
-        for (shape, hier, preset), rs in groups.items():
-            rs = sorted(rs, key=lambda r: r["level"])
-            ax.plot([r["wall_s"] for r in rs], [r["mean_mm"] for r in rs], styles.get(shape, "-"),
-                    marker=markers.get(hier, "^"), color=colours.get(preset, "k"), alpha=0.8)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        params = CASES[case]
-        ax.set_title(f"{case}: P {params.pressure_mmhg:g} mmHg, C {params.stiffness_pa:g} Pa")
-        ax.set_xlabel("time per case, s (one inverse solve, one thread)")
-        ax.set_ylabel("mean nodal error vs converged, mm")
-        ax.grid(True, which="both", alpha=0.3)
-    handles = ([Line2D([], [], color=c, lw=2, label=p) for p, c in colours.items()]
-               + [Line2D([], [], color="grey", ls="", marker=markers[h], label=f"{h} mesh") for h in names]
-               + [Line2D([], [], color="grey", ls=styles[s], label=f"{s} shape") for s in shapes])
-    fig.legend(handles=handles, loc="center right", fontsize=8, title="points: refinement levels", title_fontsize=8)
-    fig.tight_layout(rect=(0, 0, 1 - 2.0 / fig.get_figwidth(), 1))
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def write_report(result: dict, out_dir: Path, header: str = "") -> dict:
-    """convergence.md, convergence.png and convergence.json in out_dir; returns their paths."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = {"markdown": out_dir / "convergence.md", "plot": out_dir / "convergence.png",
-             "json": out_dir / "convergence.json"}
-    paths["markdown"].write_text(markdown_report(result, header))
-    plot_report(result, paths["plot"])
-    paths["json"].write_text(json.dumps(result, indent=1, default=float))
-    return paths

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from orchestrator.tasks import run_chain
-from bench.convergence import (CASES, ConvergenceSpec, Hierarchy, convergence_shape, markdown_report, nodal_error,
+from bench.convergence_report import markdown_report
+from bench.convergence import (CASES, ConvergenceSpec, Hierarchy, convergence_shape, nodal_error,
                                 observed_order, parse_hierarchies, richardson_error, run_convergence, unload_at_level)
 from solver.elements import quadrature_barycentric
 from solver.fidelity import get_fidelity
@@ -88,20 +89,20 @@ def test_the_quadrature_study_scores_each_degree_against_the_highest():
     the answer, and the refined answer at the preset's degrees is the convergence reference."""
     result = run_convergence(ConvergenceSpec(("mean",), ("mid",), (Hierarchy(50, 1),), presets=("accurate",),
                                              quad_degrees=(2, 7)))
-    rows = {(r["quad_degree"], r["facet_quad_degree"], r["level"]): r for r in result["quadrature"]}
+    rows = {(r.quad_degree, r.facet_quad_degree, r.level): r for r in result.quadrature}
     own = get_fidelity("accurate")
     assert set(rows) == {(q, f, level) for level in (0, 1)
                          for q, f in ((2, own.facet_quad_degree), (own.quad_degree, own.facet_quad_degree),
                                       (7, own.facet_quad_degree), (own.quad_degree, 7))}
-    assert not any(r["failed"] for r in rows.values())
-    err = {k: r["quadrature"]["mean_mm"] for k, r in rows.items()}
+    assert not any(r.failed for r in rows.values())
+    err = {k: r.quadrature["mean_mm"] for k, r in rows.items()}
     f = own.facet_quad_degree
     assert err[7, f, 0] == err[7, f, 1] == 0.0
     assert err[2, f, 1] < 0.5 * err[2, f, 0]
     assert err[own.quad_degree, f, 0] < 0.1 * err[2, f, 0]
     assert abs(err[own.quad_degree, 7, 0] - err[own.quad_degree, f, 0]) < 0.01
-    assert rows[own.quad_degree, f, 1]["converged"] is None and rows[own.quad_degree, f, 1]["is_preset"]
-    assert rows[2, f, 1]["converged"]["mean_mm"] == pytest.approx(err[2, f, 1], rel=0.2)
+    assert rows[own.quad_degree, f, 1].converged is None and rows[own.quad_degree, f, 1].is_preset
+    assert rows[2, f, 1].converged["mean_mm"] == pytest.approx(err[2, f, 1], rel=0.2)
     assert "## Convergence in quadrature" in markdown_report(result)
 
 
@@ -111,8 +112,8 @@ def test_unloading_converges_under_refinement_at_the_expected_rate(tiny, one_lev
     shrink at an observed order of 1–2.5 (P1: 2 for a smooth solution; the apical fibre vortex and
     the faceted wall lower it), and accurate (P2/P1) moves less than fast under refinement of the
     same mesh (0.12 mm against 0.21 mm on 86 nodes)."""
-    fast, accurate = (next(o for o in one_level["orders"] if o["preset"] == p) for p in ("fast", "accurate"))
-    assert accurate["level_diffs_mean_mm"][0] < 0.75 * fast["level_diffs_mean_mm"][0]
+    fast, accurate = (next(o for o in one_level.orders if o.preset == p) for p in ("fast", "accurate"))
+    assert accurate.level_diffs_mean_mm[0] < 0.75 * fast.level_diffs_mean_mm[0]
     levels = [unload_at_level(tiny, CASES["mid"], "fast", level) for level in (0, 1, 2)]
     diffs = [nodal_error(a.unloaded, b.unloaded, tiny.nodes)["mean_mm"] for a, b in zip(levels[:-1], levels[1:])]
     order = observed_order(*diffs)
@@ -165,9 +166,9 @@ def test_the_reference_preset_answers_the_refined_solve_at_the_ed_nodes(tiny, on
     # that refined solve, at the ED nodes
     coarse = inverse_solve(tiny, params, "accurate")
     gap = nodal_error(coarse.unloaded_nodes, pair["unloaded"], tiny.nodes)
-    level0 = next(r for r in one_level["rows"] if r["preset"] == "accurate" and r["level"] == 0)
+    level0 = next(r for r in one_level.rows if r.preset == "accurate" and r.level == 0)
     assert gap["mean_mm"] > 0.01  # the mesh's own discretisation error
-    assert abs(gap["mean_mm"] - level0["mean_mm"]) < 2e-3 and abs(gap["max_mm"] - level0["max_mm"]) < 5e-3
+    assert abs(gap["mean_mm"] - level0.error["mean_mm"]) < 2e-3 and abs(gap["max_mm"] - level0.error["max_mm"]) < 5e-3
     fwd = forward_solve(tiny.with_nodes(pair["unloaded"]), params, "reference")
     assert fwd.loaded_nodes.shape == tiny.nodes.shape
     inv = inverse_solve(tiny, params, "reference", initial_unloaded=coarse.unloaded_nodes)
@@ -191,5 +192,7 @@ def test_a_reference_chain_solves_on_one_refined_mesh_from_its_own_refined_pairs
 @pytest.mark.slow
 def test_the_report_names_its_reference(one_level):
     text = markdown_report(one_level, "# title")
+    written = one_level.as_dict()
+    assert written["rows"][0]["mean_mm"] == one_level.rows[0].error["mean_mm"] and written["quadrature"] == []
     assert "Reference: `accurate` on the hierarchy's finest mesh" in text
     assert "| mean | mid | 50-node | accurate | 1 |" in text and "† | reference |" in text

@@ -13,6 +13,7 @@ from .console import json_line, machine_line
 
 if TYPE_CHECKING:
     from bench.adaptive import AdaptiveBenchResult
+    from bench.convergence import ConvergenceResult
     from bench.solver_speed import SolverTiming
     from bench.stability import CornerCase
     from bench.trade_table import TradeResult
@@ -121,19 +122,19 @@ def print_adaptive_bench(result: "AdaptiveBenchResult", paths: dict) -> None:
     typer.echo(f"report: {paths['markdown']}")
 
 
-def print_convergence(result: dict, paths: dict) -> None:
+def print_convergence(result: "ConvergenceResult", paths: dict) -> None:
     """`bench convergence`: each hierarchy's level differences and order, each quadrature variant's error."""
-    for o in result["orders"]:
-        diffs = ", ".join(f"{d:.4f}" for d in o["level_diffs_mean_mm"])
-        order = (f"order {o['order_mean']:.2f} (max-norm {o['order_max']:.2f})" if len(o["level_diffs_mean_mm"]) >= 2
-                 else f"with the deepest mesh's order {o['order_used']:.2f}")
-        typer.echo(f"{o['shape']:>6} {o['case']:>4} {o['hierarchy']:>9} {o['preset']:>8}: mean differences of levels "
-                   f"{diffs} mm; {order}: finest level's error ≈ {o['finest_error_mean_mm']:.4f} mm mean")
-    for r in result["quadrature"]:
-        if not r["failed"]:
-            typer.echo(f"{r['shape']:>6} {r['case']:>4} {r['hierarchy']:>9} {r['preset']:>8} q{r['quad_degree']} "
-                       f"f{r['facet_quad_degree']} level {r['level']}: quadrature error "
-                       f"{r['quadrature']['mean_mm']:.4f} mm mean, {r['wall_s']:.1f} s")
+    for o in result.orders:
+        diffs = ", ".join(f"{d:.4f}" for d in o.level_diffs_mean_mm)
+        order = (f"order {o.order_mean:.2f} (max-norm {o.order_max:.2f})" if len(o.level_diffs_mean_mm) >= 2
+                 else f"with the deepest mesh's order {o.order_used:.2f}")
+        typer.echo(f"{o.shape:>6} {o.case:>4} {o.hierarchy:>9} {o.preset:>8}: mean differences of levels "
+                   f"{diffs} mm; {order}: finest level's error ≈ {o.finest_error_mean_mm:.4f} mm mean")
+    for r in result.quadrature:
+        if not r.failed:
+            typer.echo(f"{r.shape:>6} {r.case:>4} {r.hierarchy:>9} {r.preset:>8} q{r.quad_degree} "
+                       f"f{r.facet_quad_degree} level {r.level}: quadrature error "
+                       f"{r.quadrature['mean_mm']:.4f} mm mean, {r.wall_s:.1f} s")
     typer.echo(f"report: {paths['markdown']}, {paths['plot']}")
 
 
