@@ -6,6 +6,7 @@ from __future__ import annotations
 import statistics
 import tempfile
 import time
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,64 @@ from orchestrator.sweep import run_sweep
 from orchestrator.tasks import mesh_shape, run_case, run_chain
 
 
+@dataclass(frozen=True, kw_only=True)
+class CpuRun:
+    """The sweep on one CPU count: pairs done and failed of `cases`, phase-2 wall time (s) and
+    throughput (pairs/s); medians of a pair's solve, submit→start and result→stored times and the mean
+    solve (s); the driver's store time and the idle core time per pair (s); a no-op Ray round trip (s);
+    and against the first CPU count and the plain serial loop: speedup, parallel efficiency, throughput
+    per CPU over the plain loop's, and each overhead as a percentage of the median solve."""
+
+    cpus: int
+    cases: int
+    done: int
+    failed: int
+    phase2_s: float
+    throughput_cases_per_s: float
+    solve_s_median: float
+    solve_s_mean: float
+    submit_to_start_s_median: float
+    result_to_stored_s_median: float
+    driver_store_s_per_case: float
+    idle_core_s_per_task: float
+    noop_roundtrip_s_median: float
+    speedup_vs_1: float = float("nan")
+    parallel_efficiency: float = float("nan")
+    throughput_vs_plain: float = float("nan")
+    overhead_submit_to_start_pct: float = float("nan")
+    overhead_result_to_stored_pct: float = float("nan")
+    overhead_noop_pct: float = float("nan")
+    overhead_idle_core_pct: float = float("nan")
+
+    def compared(self, first: "CpuRun", plain_per_s: float) -> "CpuRun":
+        """This run with its figures against the first CPU count's run and the plain loop's pairs/s."""
+        s = self.solve_s_median
+        per_cpu_first = first.throughput_cases_per_s / first.cpus
+        return replace(self, speedup_vs_1=self.throughput_cases_per_s / first.throughput_cases_per_s * first.cpus,
+                       parallel_efficiency=self.throughput_cases_per_s / (self.cpus * per_cpu_first),
+                       throughput_vs_plain=self.throughput_cases_per_s / plain_per_s / self.cpus,
+                       overhead_submit_to_start_pct=100 * self.submit_to_start_s_median / s,
+                       overhead_result_to_stored_pct=100 * self.result_to_stored_s_median / s,
+                       overhead_noop_pct=100 * self.noop_roundtrip_s_median / s,
+                       overhead_idle_core_pct=100 * self.idle_core_s_per_task / s)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SweepBenchResult:
+    """`bench sweep`'s result: the mesh's nodes, the pairs per run, the plain serial loop's time per pair
+    cold and in warm-started pressure chains (s) and its median solve (s), and a CpuRun per CPU count."""
+
+    nodes: int
+    cases: int
+    plain_serial_s_per_case: float
+    chained_serial_s_per_case: float
+    plain_solve_s_median: float
+    rows: list[CpuRun]
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
 def bench_spec(cases: int, nodes: int) -> SweepSpec:
     pressures = tuple(float(p) for p in np.linspace(6.0, 12.0, max(1, cases // 2)))
     stiffness = (100.0, 200.0) if cases >= 2 else (150.0,)
@@ -30,7 +89,7 @@ def _noop():
     return time.time()
 
 
-def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> dict:
+def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> CpuRun:
     import ray
 
     from orchestrator.tasks import warm_up
@@ -56,16 +115,13 @@ def _ray_run(spec: SweepSpec, cpus: int, workdir: Path) -> dict:
     stored = st[:, col["stored_at"]] - st[:, col["finished_at"]]
     n = report.done + report.failed
     idle_core_s = cpus * report.phase2_s - float(solve.sum())
-    return {
-        "cpus": cpus, "cases": n, "done": report.done, "failed": report.failed, "phase2_s": report.phase2_s,
-        "throughput_cases_per_s": n / report.phase2_s, "solve_s_median": float(np.median(solve)),
-        "solve_s_mean": float(solve.mean()),
-        "submit_to_start_s_median": float(np.median(queue)),
-        "result_to_stored_s_median": float(np.median(stored)),
-        "driver_store_s_per_case": report.driver_store_s / max(n, 1),
-        "idle_core_s_per_task": idle_core_s / max(n, 1),
-        "noop_roundtrip_s_median": statistics.median(lat),
-    }
+    return CpuRun(
+        cpus=cpus, cases=n, done=report.done, failed=report.failed, phase2_s=report.phase2_s,
+        throughput_cases_per_s=n / report.phase2_s, solve_s_median=float(np.median(solve)),
+        solve_s_mean=float(solve.mean()), submit_to_start_s_median=float(np.median(queue)),
+        result_to_stored_s_median=float(np.median(stored)),
+        driver_store_s_per_case=report.driver_store_s / max(n, 1),
+        idle_core_s_per_task=idle_core_s / max(n, 1), noop_roundtrip_s_median=statistics.median(lat))
 
 
 def parse_cpu_counts(text: str) -> list[int]:
@@ -79,7 +135,7 @@ def parse_cpu_counts(text: str) -> list[int]:
     return counts
 
 
-def run_sweep_benchmark(cases: int = 8, nodes: int = 200, cpus=(1, 2)) -> dict:
+def run_sweep_benchmark(cases: int = 8, nodes: int = 200, cpus=(1, 2)) -> SweepBenchResult:
     """The benchmark's figures for `cases` fast pairs of one shape meshed to about `nodes` nodes, on
     each CPU count of `cpus`; ValueError (one line) for a count of cases or nodes out of range."""
     from solver.meshing import check_node_target
@@ -99,20 +155,10 @@ def run_sweep_benchmark(cases: int = 8, nodes: int = 200, cpus=(1, 2)) -> dict:
     for chain in pressure_chains(params, range(len(params))):
         run_chain(m, [params[k] for k in chain], "fast")
     chained_wall = time.perf_counter() - t
-    rows = []
     with tempfile.TemporaryDirectory(prefix="heartctl-bench-") as tmp:
-        for k in cpus:
-            rows.append(_ray_run(spec, int(k), Path(tmp)))
-    base = rows[0]
-    for r in rows:
-        r["speedup_vs_1"] = r["throughput_cases_per_s"] / base["throughput_cases_per_s"] * base["cpus"]
-        r["parallel_efficiency"] = r["throughput_cases_per_s"] / (r["cpus"] * base["throughput_cases_per_s"] / base["cpus"])
-        r["throughput_vs_plain"] = r["throughput_cases_per_s"] / (len(plain) / plain_wall) / r["cpus"]
-        s = r["solve_s_median"]
-        r["overhead_submit_to_start_pct"] = 100 * r["submit_to_start_s_median"] / s
-        r["overhead_result_to_stored_pct"] = 100 * r["result_to_stored_s_median"] / s
-        r["overhead_noop_pct"] = 100 * r["noop_roundtrip_s_median"] / s
-        r["overhead_idle_core_pct"] = 100 * r["idle_core_s_per_task"] / s
-    return {"nodes": int(m.n_nodes), "cases": spec.n_cases, "plain_serial_s_per_case": plain_wall / len(plain),
-            "chained_serial_s_per_case": chained_wall / len(plain),
-            "plain_solve_s_median": float(np.median(plain)), "rows": rows}
+        runs = [_ray_run(spec, int(k), Path(tmp)) for k in cpus]
+    plain_per_s = len(plain) / plain_wall
+    return SweepBenchResult(nodes=int(m.n_nodes), cases=spec.n_cases, plain_serial_s_per_case=plain_wall / len(plain),
+                            chained_serial_s_per_case=chained_wall / len(plain),
+                            plain_solve_s_median=float(np.median(plain)),
+                            rows=[r.compared(runs[0], plain_per_s) for r in runs])

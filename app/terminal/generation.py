@@ -3,11 +3,15 @@ refusals as one line, and the plan and report it prints."""
 from __future__ import annotations
 
 import os
+from typing import TYPE_CHECKING
 
 import typer
 
 from . import console
 from .console import fail, failures, json_line, size_text, stop_on_sigterm
+
+if TYPE_CHECKING:
+    from bench.sweep_speed import SweepBenchResult
 
 
 def check_sweep_memory(sweep) -> None:
@@ -151,27 +155,27 @@ def _print_cost(cost, store_objects: int) -> None:
     typer.echo(line)
 
 
-def print_sweep_bench(result: dict, as_json: bool) -> None:
+def print_sweep_bench(result: "SweepBenchResult", as_json: bool) -> None:
     """`bench sweep`: strict JSON, or the throughput table per CPU count and what its columns mean."""
     if as_json:
-        typer.echo(json_line(result))
+        typer.echo(json_line(result.as_dict()))
         return
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"heartctl bench sweep — {result['cases']} fast pairs, {result['nodes']} nodes; "
-                        f"plain serial {result['plain_serial_s_per_case']:.2f} s/pair cold, "
-                        f"{result['chained_serial_s_per_case']:.2f} s/pair in warm-started pressure chains")
+    table = Table(title=f"heartctl bench sweep — {result.cases} fast pairs, {result.nodes} nodes; "
+                        f"plain serial {result.plain_serial_s_per_case:.2f} s/pair cold, "
+                        f"{result.chained_serial_s_per_case:.2f} s/pair in warm-started pressure chains")
     for col in ("CPUs", "pairs/s", "speedup", "efficiency", "solve s (p50)", "idle core s/task", "submit→start s",
                 "result→stored s", "no-op round trip s", "overhead % of solve (idle / stored / no-op)"):
         table.add_column(col, justify="right")
-    for r in result["rows"]:
-        table.add_row(str(r["cpus"]), f"{r['throughput_cases_per_s']:.3f}", f"{r['speedup_vs_1']:.2f}",
-                      f"{100 * r['parallel_efficiency']:.0f} %", f"{r['solve_s_median']:.2f}",
-                      f"{r['idle_core_s_per_task']:.3f}", f"{r['submit_to_start_s_median']:.3f}",
-                      f"{r['result_to_stored_s_median']:.4f}", f"{r['noop_roundtrip_s_median']:.4f}",
-                      f"{r['overhead_idle_core_pct']:.1f} / {r['overhead_result_to_stored_pct']:.2f} / "
-                      f"{r['overhead_noop_pct']:.2f}")
+    for r in result.rows:
+        table.add_row(str(r.cpus), f"{r.throughput_cases_per_s:.3f}", f"{r.speedup_vs_1:.2f}",
+                      f"{100 * r.parallel_efficiency:.0f} %", f"{r.solve_s_median:.2f}",
+                      f"{r.idle_core_s_per_task:.3f}", f"{r.submit_to_start_s_median:.3f}",
+                      f"{r.result_to_stored_s_median:.4f}", f"{r.noop_roundtrip_s_median:.4f}",
+                      f"{r.overhead_idle_core_pct:.1f} / {r.overhead_result_to_stored_pct:.2f} / "
+                      f"{r.overhead_noop_pct:.2f}")
     Console(width=200).print(table)
     typer.echo("Ray rows: one cold pair per task. submit→start includes queueing (2 tasks in flight per CPU); "
                "idle core s/task = (CPUs × wall − Σ solve) / pairs, everything that is not solving.")
