@@ -6,7 +6,7 @@ for comparison)."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +79,76 @@ def _profile(fn, device, calls: int = 3, rows: int = 25) -> str:
     return prof.key_averages().table(sort_by=key, row_limit=rows, max_name_column_width=60)
 
 
+@dataclass(frozen=True, kw_only=True)
+class InferenceTiming:
+    """One inference batch size: ms per batch and per case of a batch collated once, and (with the
+    attention graph) ms per case of a batch built in each call from a GraphTable (None without)."""
+
+    batch: int
+    ms_per_batch: float
+    ms_per_case: float
+    table_ms_per_case: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class PreparedTiming:
+    """One case on a mesh prepared once (`PreparedCase`): ms per case, whether a CUDA graph replays it,
+    and why capturing one failed (None: it did not, or none was tried)."""
+
+    ms_per_case: float
+    cuda_graph: bool
+    capture_error: str | None
+
+
+@dataclass(frozen=True, kw_only=True)
+class BatchBuilding:
+    """Building a training batch: by PyG's collation and copy (ms), from the loop's GraphTable (ms, on
+    `table_device`), and a training step with its batch built, steps back to back (ms)."""
+
+    pyg_ms: float
+    table_ms: float
+    table_device: str
+    loop_step_ms: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelBenchResult:
+    """`bench model`'s result: where it ran (device, its name, torch threads), the model (configuration,
+    parameters, bf16, GAT kernel, cycle, compiled and its compile time, s), the mesh (nodes, directed
+    edges), each inference batch, the prepared single case, the linear FE response per mesh (ms; None
+    when the configuration takes none), the training step (batch, ms, graphs/s), batch building and the
+    loop's graphs/s, and with `profile` torch.profiler's tables."""
+
+    device: str
+    device_name: str
+    threads: int
+    config: str
+    nodes: int
+    edges: int
+    parameters: int
+    bf16: bool
+    gat_kernel: str
+    inference: list[InferenceTiming]
+    prepared_single: PreparedTiming
+    response_ms_per_mesh: float | None
+    train_batch: int
+    train_step_ms: float
+    train_graphs_per_s: float
+    cycle: bool
+    batch_building: BatchBuilding
+    loop_graphs_per_s: float
+    compiled: bool
+    compile_s: float
+    profile_train: str | None = None
+    profile_inference: str | None = None
+
+    def as_dict(self) -> dict:
+        """The JSON `--json` prints: every figure, a row's table time and the profiles only where measured."""
+        d = asdict(self)
+        d["inference"] = [{k: v for k, v in row.items() if v is not None} for row in d["inference"]]
+        return {k: v for k, v in d.items() if v is not None or k == "response_ms_per_mesh"}
+
+
 @dataclass(frozen=True)
 class ModelBench:
     """What `heartctl bench model` times: `config`'s network on `device` (cpu | cuda), at the
@@ -126,7 +196,7 @@ class ModelBench:
         except ValueError:
             raise ValueError(f"`batches` must be comma-separated integers, got {self.batches!r}") from None
 
-    def run(self) -> dict:
+    def run(self) -> ModelBenchResult:
         """bench_model with these settings (torch's CPU threads set first)."""
         if self.threads is not None:
             torch.set_num_threads(self.threads)
@@ -139,7 +209,7 @@ class ModelBench:
 def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", batches=(1, 32, 128),
                 train_batch: int | None = None, bf16: bool = False, seed: int = 0, min_s: float = 1.0,
                 gat_kernel: str = "sparse", mesh_path: str | None = None, compile_model: bool = False,
-                profile: bool = False, mesh_units: str = "mm") -> dict:
+                profile: bool = False, mesh_units: str = "mm") -> ModelBenchResult:
     """mesh_path: time on this mesh (any format storage.meshfiles reads, in `mesh_units`) instead of meshing shape 0
     with gmsh for `nodes` nodes (lets a GPU host without gmsh run the benchmark). compile_model: run
     the batched inference and the training step through torch.compile (dynamic shapes; the first,
@@ -158,8 +228,8 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
 
     prepared = PreparedCase(b.model, Batch.from_data_list([b.graph()]).to(b.dev), bf16=bf16)
     s = _timed(prepared, b.dev, min_s)
-    prepared_row = {"ms_per_case": s * 1e3, "cuda_graph": prepared.cuda_graph is not None,
-                    "capture_error": prepared.capture_error}
+    prepared_row = PreparedTiming(ms_per_case=s * 1e3, cuda_graph=prepared.cuda_graph is not None,
+                                  capture_error=prepared.capture_error)
     tb = train_batch or (128 if b.dev.type == "cuda" else 32)
     step, s, building = _time_training(b, tb, seed, min_s)
     profiles = {}
@@ -169,14 +239,14 @@ def bench_model(device: str = "cpu", nodes: int = 650, config: str = "paper", ba
         big = Batch.from_data_list(cases).to(b.dev)
         profiles["profile_inference"] = _profile(lambda: b.infer(big), b.dev)
     dev = b.dev
-    return {**profiles, "device": str(dev), "device_name": torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
-            "threads": torch.get_num_threads(), "config": config, "nodes": int(b.mesh.n_nodes),
-            "edges": int(b.feat.edge_index.shape[1]), "parameters": count_parameters(b.model),
-            "bf16": bool(bf16 and dev.type == "cuda"), "gat_kernel": gat_kernel, "inference": rows,
-            "prepared_single": prepared_row, "response_ms_per_mesh": response_ms, "train_batch": tb,
-            "train_step_ms": s * 1e3, "train_graphs_per_s": tb / s, "cycle": b.cfg.cycle,
-            "batch_building": building, "loop_graphs_per_s": tb / building["loop_step_ms"] * 1e3,
-            "compiled": bool(compile_model), "compile_s": sum(b.compile_s) if compile_model else 0.0}
+    return ModelBenchResult(
+        **profiles, device=str(dev), device_name=torch.cuda.get_device_name(dev) if dev.type == "cuda" else "cpu",
+        threads=torch.get_num_threads(), config=config, nodes=int(b.mesh.n_nodes),
+        edges=int(b.feat.edge_index.shape[1]), parameters=count_parameters(b.model),
+        bf16=bool(bf16 and dev.type == "cuda"), gat_kernel=gat_kernel, inference=rows, prepared_single=prepared_row,
+        response_ms_per_mesh=response_ms, train_batch=tb, train_step_ms=s * 1e3, train_graphs_per_s=tb / s,
+        cycle=b.cfg.cycle, batch_building=building, loop_graphs_per_s=tb / building.loop_step_ms * 1e3,
+        compiled=bool(compile_model), compile_s=sum(b.compile_s) if compile_model else 0.0)
 
 
 @dataclass
@@ -248,7 +318,7 @@ def _bench_mesh(mesh_path: str | None, mesh_units: str, nodes: int, seed: int):
     return mesh_lv(lv_shape(0, seed), nodes)
 
 
-def _time_inference(b: _Bench, cases: list, batches, min_s: float) -> list[dict]:
+def _time_inference(b: _Bench, cases: list, batches, min_s: float) -> list[InferenceTiming]:
     """ms per batch and per case at each batch size: of a batch collated once, and (with the attention
     graph) of a batch built in each call from a GraphTable as the training loop builds them."""
     from torch_geometric.data import Batch
@@ -259,10 +329,11 @@ def _time_inference(b: _Bench, cases: list, batches, min_s: float) -> list[dict]
     for size in batches:
         data = Batch.from_data_list(cases[:size]).to(b.dev)
         s = _timed(lambda batch=data: b.infer(batch), b.dev, min_s, first=b.compile_s)
-        row = {"batch": size, "ms_per_batch": s * 1e3, "ms_per_case": s * 1e3 / size}
+        table_ms = None
         if inference_table is not None:  # the batch and its attention graph built in each call
-            s = _timed(lambda: b.infer(inference_table.batch(range(size)).to(b.dev, non_blocking=True)), b.dev, min_s)
-            row["table_ms_per_case"] = s * 1e3 / size
+            table_ms = _timed(lambda: b.infer(inference_table.batch(range(size)).to(b.dev, non_blocking=True)),
+                              b.dev, min_s) * 1e3 / size
+        row = InferenceTiming(batch=size, ms_per_batch=s * 1e3, ms_per_case=s * 1e3 / size, table_ms_per_case=table_ms)
         rows.append(row)
     return rows
 
@@ -284,9 +355,8 @@ def _time_training(b: _Bench, tb: int, seed: int, min_s: float):
     def pyg_batch():
         return Batch.from_data_list([pool[i] for i in draw()]).to(b.dev, non_blocking=True)
 
-    building = {"pyg_ms": _timed(pyg_batch, b.dev, min_s) * 1e3,
-                "table_ms": _timed(lambda: table.batch(draw()).to(b.dev, non_blocking=True), b.dev, min_s) * 1e3,
-                "table_device": str(table.device)}
+    pyg_ms = _timed(pyg_batch, b.dev, min_s) * 1e3
+    table_ms = _timed(lambda: table.batch(draw()).to(b.dev, non_blocking=True), b.dev, min_s) * 1e3
     data = table.batch(draw()).to(b.dev, non_blocking=True)
     model, cfg = b.model, b.cfg
     model.train()
@@ -310,5 +380,5 @@ def _time_training(b: _Bench, tb: int, seed: int, min_s: float):
         data = table.batch(draw()).to(b.dev, non_blocking=True)
         step()
 
-    building["loop_step_ms"] = _timed_back_to_back(loop_step, b.dev, min_s, min_runs=2) * 1e3
-    return step, s, building
+    loop_ms = _timed_back_to_back(loop_step, b.dev, min_s, min_runs=2) * 1e3
+    return step, s, BatchBuilding(pyg_ms=pyg_ms, table_ms=table_ms, table_device=str(table.device), loop_step_ms=loop_ms)

@@ -10,6 +10,7 @@ import typer
 from .console import failures, json_line, say, stop_on_sigterm
 
 if TYPE_CHECKING:
+    from bench.network_speed import ModelBenchResult
     from trainer.evaluation.evaluate import Evaluation
     from trainer.training.summary import TrainingSummary
 
@@ -104,38 +105,38 @@ def print_evaluation(report: Evaluation, store: str, as_json: bool) -> None:
     con.print(f"wrote {', '.join(report.files)} to {report.out_dir}")
 
 
-def print_model_bench(r: dict, as_json: bool) -> None:
+def print_model_bench(r: "ModelBenchResult", as_json: bool) -> None:
     """bench model's figures: strict JSON, or lines for the model, each inference batch, the prepared
     single case, the linear FE response, training steps, batch building and any profiles."""
     if as_json:
-        typer.echo(json_line(r))
+        typer.echo(json_line(r.as_dict()))
         return
-    typer.echo(f"{r['config']} model, {r['parameters']:,} parameters; mesh {r['nodes']} nodes, {r['edges']} directed edges; "
-               f"{r['device_name']} ({r['threads']} threads){', bf16' if r['bf16'] else ', fp32'}, "
-               f"{'torch.compile (%.0f s to compile)' % r['compile_s'] if r['compiled'] else 'eager PyTorch'}, "
-               f"{r['gat_kernel']} GAT kernel")
-    for row in r["inference"]:
-        table = (f"; {row['table_ms_per_case']:.3f} ms with the batch built from a graph table (attention graph "
-                 f"assembled from the mesh's)") if "table_ms_per_case" in row else ""
-        typer.echo(f"inference batch {row['batch']:>4}: {row['ms_per_case']:8.3f} ms per case ({row['ms_per_batch']:.1f} "
+    typer.echo(f"{r.config} model, {r.parameters:,} parameters; mesh {r.nodes} nodes, {r.edges} directed edges; "
+               f"{r.device_name} ({r.threads} threads){', bf16' if r.bf16 else ', fp32'}, "
+               f"{'torch.compile (%.0f s to compile)' % r.compile_s if r.compiled else 'eager PyTorch'}, "
+               f"{r.gat_kernel} GAT kernel")
+    for row in r.inference:
+        table = (f"; {row.table_ms_per_case:.3f} ms with the batch built from a graph table (attention graph "
+                 f"assembled from the mesh's)") if row.table_ms_per_case is not None else ""
+        typer.echo(f"inference batch {row.batch:>4}: {row.ms_per_case:8.3f} ms per case ({row.ms_per_batch:.1f} "
                    f"ms per batch){table}")
-    pr = r["prepared_single"]
-    how = "CUDA graph replay" if pr["cuda_graph"] else ("eager; capture failed: " + pr["capture_error"]
-                                                       if pr["capture_error"] else "eager")
-    typer.echo(f"inference batch    1, mesh prepared once ({how}): {pr['ms_per_case']:8.3f} ms per case")
-    if r["response_ms_per_mesh"] is not None:
-        typer.echo(f"linear FE response (node input of {r['config']}; CPU, once per mesh, shared by every case "
-                   f"of it): {r['response_ms_per_mesh']:.1f} ms")
-    typer.echo(f"training batch {r['train_batch']} (with cycle: {r['cycle']}): {r['train_step_ms']:.0f} ms per step, "
-               f"{r['train_graphs_per_s']:.1f} graphs/s")
-    bb = r["batch_building"]
-    typer.echo(f"building a batch of {r['train_batch']}: {bb['table_ms']:.2f} ms from the training loop's graph table "
-               f"(on {bb['table_device']}), {bb['pyg_ms']:.2f} ms by PyG's collation and copy; a step with its batch "
-               f"built, steps back to back as in the training loop: {bb['loop_step_ms']:.0f} ms, "
-               f"{r['loop_graphs_per_s']:.1f} graphs/s")
-    for key, what in (("profile_train", "three training steps"), ("profile_inference", "three inferences of the largest batch")):
-        if key in r:
-            typer.echo(f"torch.profiler, {what}:\n{r[key]}")
+    pr = r.prepared_single
+    how = "CUDA graph replay" if pr.cuda_graph else ("eager; capture failed: " + pr.capture_error
+                                                     if pr.capture_error else "eager")
+    typer.echo(f"inference batch    1, mesh prepared once ({how}): {pr.ms_per_case:8.3f} ms per case")
+    if r.response_ms_per_mesh is not None:
+        typer.echo(f"linear FE response (node input of {r.config}; CPU, once per mesh, shared by every case "
+                   f"of it): {r.response_ms_per_mesh:.1f} ms")
+    typer.echo(f"training batch {r.train_batch} (with cycle: {r.cycle}): {r.train_step_ms:.0f} ms per step, "
+               f"{r.train_graphs_per_s:.1f} graphs/s")
+    bb = r.batch_building
+    typer.echo(f"building a batch of {r.train_batch}: {bb.table_ms:.2f} ms from the training loop's graph table "
+               f"(on {bb.table_device}), {bb.pyg_ms:.2f} ms by PyG's collation and copy; a step with its batch "
+               f"built, steps back to back as in the training loop: {bb.loop_step_ms:.0f} ms, "
+               f"{r.loop_graphs_per_s:.1f} graphs/s")
+    for table, what in ((r.profile_train, "three training steps"), (r.profile_inference, "three inferences of the largest batch")):
+        if table is not None:
+            typer.echo(f"torch.profiler, {what}:\n{table}")
 
 
 def print_ablation(result: dict, store: str, root: Path, split: str, sr: float, epochs: int, seed: int) -> None:
