@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -20,9 +20,91 @@ from storage.schema import PARAM_NAMES
 
 
 
+@dataclass(frozen=True, kw_only=True)
+class L2uPairCheck:
+    """One of their pairs solved by us: shape and case, their parameters (their C), their mean loading
+    displacement (mm), whether our solve converged (`reason` when not) and its time (s); when it did, the
+    nodal distance of our geometry to theirs (mean, max mm), our own mean loading displacement (mm), the
+    mean distance over theirs (`relative`), and the same after the in-plane rigid alignment."""
+
+    shape: int
+    case: int
+    pressure_mmhg: float
+    stiffness_pa: float
+    helix_endo_deg: float
+    helix_epi_deg: float
+    loading_mean_mm: float
+    ok: bool
+    wall_s: float
+    reason: str | None = None
+    mismatch_mean_mm: float | None = None
+    mismatch_max_mm: float | None = None
+    ours_loading_mean_mm: float | None = None
+    relative: float | None = None
+    aligned_mean_mm: float | None = None
+    aligned_relative: float | None = None
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class L2uSummary:
+    """Means over `n` solved pairs of L2uPairCheck's figures (the largest mismatch: the max); None for none."""
+
+    n: int
+    mismatch_mean_mm: float | None = None
+    mismatch_max_mm: float | None = None
+    loading_mean_mm: float | None = None
+    ours_loading_mean_mm: float | None = None
+    relative: float | None = None
+    aligned_mean_mm: float | None = None
+    aligned_relative: float | None = None
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class L2uCheckResult:
+    """`bench l2u`'s result: the direction and set-up (preset, base, C factor, fibre rule, cell quadrature
+    degree), pairs tried and solved, every pair, their summary overall and per parameter value."""
+
+    direction: str
+    fidelity: str
+    base: str
+    stiffness_factor: float
+    fibres: str
+    quad_degree: int
+    rows: list[L2uPairCheck]
+    overall: L2uSummary
+    by_parameter: dict[str, dict[float, L2uSummary]]
+
+    @property
+    def cases(self) -> int:
+        return len(self.rows)
+
+    @property
+    def solved(self) -> int:
+        return sum(r.ok for r in self.rows)
+
+    @property
+    def failed(self) -> list[L2uPairCheck]:
+        return [r for r in self.rows if not r.ok]
+
+    def as_dict(self, with_rows: bool = True) -> dict:
+        """`--json`'s layout (without the rows when `with_rows` is False)."""
+        d = {"direction": self.direction, "fidelity": self.fidelity, "base": self.base,
+             "stiffness_factor": self.stiffness_factor, "fibres": self.fibres, "quad_degree": self.quad_degree,
+             "cases": self.cases, "solved": self.solved, "failed": [r.as_dict() for r in self.failed],
+             "overall": self.overall.as_dict(),
+             "by_parameter": {name: {v: g.as_dict() for v, g in groups.items()} for name, groups in self.by_parameter.items()}}
+        return {**d, "rows": [r.as_dict() for r in self.rows]} if with_rows else d
+
+
 
 def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | str, base: str,
-               stiffness_factor: float = 1.0, fibres: str = "laplace", direction: str = "forward") -> dict:
+               stiffness_factor: float = 1.0, fibres: str = "laplace", direction: str = "forward") -> L2uPairCheck:
     """One pair; `stiffness_factor` multiplies their C (their heartFEM code writes W = C (e^Q − 1),
     ours W = C/2 (e^Q − 1): 2 makes the laws equal); `fibres` is the fibre rule. direction "forward":
     inflate their unloaded mesh, compare with their ED mesh; "inverse": unload their ED mesh (inverse
@@ -37,9 +119,8 @@ def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | s
     p = case.params
     params = CaseParameters(p["pressure_mmhg"], p["stiffness_pa"] * stiffness_factor, p["helix_endo_deg"],
                             p["helix_epi_deg"])
-    row = {"shape": shape_id, "case": k, **case.params}
     loading = np.linalg.norm(ed - unloaded, axis=1)
-    row["loading_mean_mm"] = float(loading.mean())
+    row = dict(shape=shape_id, case=k, **case.params, loading_mean_mm=float(loading.mean()))
     t0 = time.perf_counter()
     try:
         if direction == "forward":
@@ -49,16 +130,14 @@ def check_case(reader: PairReader, shape_id: int, k: int, fidelity: Fidelity | s
             ours, theirs, start = inverse_solve(mesh.with_nodes(ed), params, fidelity, base,
                                                 fibres=fibres).unloaded_nodes, unloaded, ed
     except SolveError as exc:
-        row.update(ok=False, reason=str(exc), wall_s=time.perf_counter() - t0)
-        return row
+        return L2uPairCheck(**row, ok=False, reason=str(exc), wall_s=time.perf_counter() - t0)
     gap = np.linalg.norm(ours - theirs, axis=1)
     aligned = np.linalg.norm(align_in_plane(ours, theirs) - theirs, axis=1)
     ours_disp = np.linalg.norm(ours - start, axis=1)
-    row.update(ok=True, wall_s=time.perf_counter() - t0, mismatch_mean_mm=float(gap.mean()),
-               mismatch_max_mm=float(gap.max()), ours_loading_mean_mm=float(ours_disp.mean()),
-               relative=float(gap.mean() / loading.mean()), aligned_mean_mm=float(aligned.mean()),
-               aligned_relative=float(aligned.mean() / loading.mean()))
-    return row
+    return L2uPairCheck(**row, ok=True, wall_s=time.perf_counter() - t0, mismatch_mean_mm=float(gap.mean()),
+                        mismatch_max_mm=float(gap.max()), ours_loading_mean_mm=float(ours_disp.mean()),
+                        relative=float(gap.mean() / loading.mean()), aligned_mean_mm=float(aligned.mean()),
+                        aligned_relative=float(aligned.mean() / loading.mean()))
 
 
 def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -75,7 +154,7 @@ def align_in_plane(x: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = None,
                   stiffness_factor: float = 1.0, fibres: str = "laplace", quad_degree: int | None = None,
-                  direction: str = "forward") -> dict:
+                  direction: str = "forward") -> L2uCheckResult:
     """`quad_degree` 1–6 overrides the preset's cell quadrature (heartFEM integrates, and places its
     fibres, at degree 4; 0 or None: the preset's). `limit` N ≥ 1: the first N done pairs (None: all).
     `stiffness_factor` > 0 multiplies their C. ValueError (one line) for a bad setting; StoreError for a
@@ -100,27 +179,22 @@ def run_l2u_check(location: str, fidelity: str, base: str, limit: int | None = N
     if quad_degree is not None:
         fid = replace(fid, quad_degree=quad_degree)
     rows = [check_case(reader, s, k, fid, base, stiffness_factor, fibres, direction) for s, k in keys]
-    ok = [r for r in rows if r["ok"]]
+    ok = [r for r in rows if r.ok]
     by_param = {}
     for name in PARAM_NAMES:
         groups = defaultdict(list)
         for r in ok:
-            groups[r[name]].append(r)
+            groups[getattr(r, name)].append(r)
         by_param[name] = {v: _summary(g) for v, g in sorted(groups.items())}
-    return {"direction": direction, "fidelity": fidelity, "base": base, "stiffness_factor": stiffness_factor, "fibres": fibres,
-            "quad_degree": fid.quad_degree, "cases": len(rows), "solved": len(ok),
-            "failed": [r for r in rows if not r["ok"]], "overall": _summary(ok), "by_parameter": by_param,
-            "rows": rows}
+    return L2uCheckResult(direction=direction, fidelity=fidelity, base=base, stiffness_factor=stiffness_factor,
+                          fibres=fibres, quad_degree=fid.quad_degree, rows=rows, overall=_summary(ok),
+                          by_parameter=by_param)
 
 
-def _summary(rows: list) -> dict:
+def _summary(rows: list[L2uPairCheck]) -> L2uSummary:
     if not rows:
-        return {"n": 0}
-    return {"n": len(rows),
-            "mismatch_mean_mm": float(np.mean([r["mismatch_mean_mm"] for r in rows])),
-            "mismatch_max_mm": float(np.max([r["mismatch_max_mm"] for r in rows])),
-            "loading_mean_mm": float(np.mean([r["loading_mean_mm"] for r in rows])),
-            "ours_loading_mean_mm": float(np.mean([r["ours_loading_mean_mm"] for r in rows])),
-            "relative": float(np.mean([r["relative"] for r in rows])),
-            "aligned_mean_mm": float(np.mean([r["aligned_mean_mm"] for r in rows])),
-            "aligned_relative": float(np.mean([r["aligned_relative"] for r in rows]))}
+        return L2uSummary(n=0)
+    mean = {name: float(np.mean([getattr(r, name) for r in rows]))
+            for name in ("mismatch_mean_mm", "loading_mean_mm", "ours_loading_mean_mm", "relative", "aligned_mean_mm",
+                         "aligned_relative")}
+    return L2uSummary(n=len(rows), mismatch_max_mm=float(np.max([r.mismatch_max_mm for r in rows])), **mean)

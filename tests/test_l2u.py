@@ -195,11 +195,11 @@ def test_forward_consistency_on_one_pair(store):
     s, k = reader.done_cases()[0]
     theirs = replace(get_fidelity("accurate"), quad_degree=4)
     row = check_case(reader, s, k, theirs, "heartfem", stiffness_factor=2.0, fibres="heartfem")
-    assert row["ok"]
-    assert row["relative"] < 0.05
-    assert 0.9 < row["ours_loading_mean_mm"] / row["loading_mean_mm"] < 1.1
+    assert row.ok
+    assert row.relative < 0.05
+    assert 0.9 < row.ours_loading_mean_mm / row.loading_mean_mm < 1.1
     ours = check_case(reader, s, k, theirs, "spring", stiffness_factor=2.0, fibres="heartfem")
-    assert ours["relative"] > 2 * row["relative"]
+    assert ours.relative > 2 * row.relative
 
 
 def test_inverse_direction_unloads_their_ed_mesh_onto_their_unloaded_mesh(store):
