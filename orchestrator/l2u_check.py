@@ -21,11 +21,28 @@ from storage.schema import PARAM_NAMES
 
 
 @dataclass(frozen=True, kw_only=True)
-class L2uPairCheck:
+class L2uFigures:
+    """How our geometry compares with theirs: the nodal distance (mean, max mm), their and our mean
+    loading displacement (mm), the mean distance over their loading (`relative`), and the same after the
+    in-plane rigid alignment; None where nothing was solved."""
+
+    mismatch_mean_mm: float | None = None
+    mismatch_max_mm: float | None = None
+    loading_mean_mm: float | None = None
+    ours_loading_mean_mm: float | None = None
+    relative: float | None = None
+    aligned_mean_mm: float | None = None
+    aligned_relative: float | None = None
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in asdict(self).items() if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class L2uPairCheck(L2uFigures):
     """One of their pairs solved by us: shape and case, their parameters (their C), their mean loading
-    displacement (mm), whether our solve converged (`reason` when not) and its time (s); when it did, the
-    nodal distance of our geometry to theirs (mean, max mm), our own mean loading displacement (mm), the
-    mean distance over theirs (`relative`), and the same after the in-plane rigid alignment."""
+    displacement (mm, always there), whether our solve converged (`reason` when not), its time (s), and
+    when it did the figures."""
 
     shape: int
     case: int
@@ -37,32 +54,13 @@ class L2uPairCheck:
     ok: bool
     wall_s: float
     reason: str | None = None
-    mismatch_mean_mm: float | None = None
-    mismatch_max_mm: float | None = None
-    ours_loading_mean_mm: float | None = None
-    relative: float | None = None
-    aligned_mean_mm: float | None = None
-    aligned_relative: float | None = None
-
-    def as_dict(self) -> dict:
-        return {k: v for k, v in asdict(self).items() if v is not None}
 
 
 @dataclass(frozen=True, kw_only=True)
-class L2uSummary:
-    """Means over `n` solved pairs of L2uPairCheck's figures (the largest mismatch: the max); None for none."""
+class L2uSummary(L2uFigures):
+    """Means over `n` solved pairs of their figures (the largest mismatch: the max); None for none."""
 
     n: int
-    mismatch_mean_mm: float | None = None
-    mismatch_max_mm: float | None = None
-    loading_mean_mm: float | None = None
-    ours_loading_mean_mm: float | None = None
-    relative: float | None = None
-    aligned_mean_mm: float | None = None
-    aligned_relative: float | None = None
-
-    def as_dict(self) -> dict:
-        return {k: v for k, v in asdict(self).items() if v is not None}
 
 
 @dataclass(frozen=True, kw_only=True)
