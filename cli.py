@@ -410,15 +410,15 @@ def bench_ablation_cmd(store: str = typer.Option(..., "--store", help="Zarr stor
                        lr_schedule: str = LrScheduleOpt,
                        as_json: bool = typer.Option(False, "--json", help="Print the table as JSON.")):
     """Train each configuration on the same split (plain PyTorch, in turn) and tabulate test metrics."""
-    from bench.ablation import ablation_study
+    from bench.ablation import AblationSeedsResult, ablation_study
 
     with failures():
         result = ablation_study(store, root, configs, seeds, device, lambda line: say(line, err=True),
                                 split=split, sr=sr, seed=seed, epochs=epochs, batch_size=batch_size,
                                 rotate_deg=rotate_deg, scale_pct=scale_pct, lr_schedule=lr_schedule)
     if as_json:
-        typer.echo(json_line(result))
-    elif "seeds" in result:
+        typer.echo(json_line(result.as_dict()))
+    elif isinstance(result, AblationSeedsResult):
         print_ablation_seeds(result, root)
     else:
         print_ablation(result, store, root, split, sr, epochs, seed)
@@ -448,7 +448,7 @@ def bench_learning_curve_cmd(store: str = LearningCurveOptions.store, root: Path
             lr_schedule=lr_schedule), {"md_mm": target_md, "hd_mm": target_hd, "dsc_1mm": target_dsc})
         result = run_learning_curve(base, values, root, targets, device, lambda line: say(line, err=True))
     if as_json:
-        typer.echo(json_line(result))
+        typer.echo(json_line(result.as_dict()))
         return
     print_learning_curve(result, root)
 

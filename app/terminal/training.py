@@ -10,6 +10,8 @@ import typer
 from .console import failures, json_line, say, stop_on_sigterm
 
 if TYPE_CHECKING:
+    from bench.ablation import AblationResult, AblationSeedsResult
+    from bench.learning_curve import LearningCurveResult
     from bench.network_speed import ModelBenchResult
     from trainer.evaluation.evaluate import Evaluation
     from trainer.training.summary import TrainingSummary
@@ -139,28 +141,29 @@ def print_model_bench(r: "ModelBenchResult", as_json: bool) -> None:
             typer.echo(f"torch.profiler, {what}:\n{table}")
 
 
-def print_ablation(result: dict, store: str, root: Path, split: str, sr: float, epochs: int, seed: int) -> None:
+def print_ablation(result: "AblationResult", store: str, root: Path, split: str, sr: float, epochs: int,
+                   seed: int) -> None:
     """The ablation table (the best value per metric in bold), then the comparisons that matter."""
     from rich.console import Console
     from rich.table import Table
 
     from bench.ablation import KEY_COMPARISONS, TABLE_METRICS, beats
 
-    rows = result["rows"]
+    rows = result.rows
     table = Table(title=f"test split of {store} (split {split}, SR {sr:g}, ≤ {epochs} epochs, seed {seed}; "
-                        f"{rows[0]['cases']} cases)")
+                        f"{rows[0].score.cases} cases)")
     for col in ("config", *[label for _, label, _ in TABLE_METRICS], "ms/case", "epochs"):
         table.add_column(col, justify="left" if col == "config" else "right")
     for r in rows:
-        cells = [f"[bold]{r[k]:.3f}[/bold]" if result["best"][k] == r["config"] else f"{r[k]:.3f}"
+        cells = [f"[bold]{r.score.metric(k):.3f}[/bold]" if result.best[k] == r.config else f"{r.score.metric(k):.3f}"
                  for k, _, _ in TABLE_METRICS]
-        label = f"{r['config']} ({r['code']})" if r.get("code") else r["config"]
-        table.add_row(label, *cells, f"{r['ms_per_case']:.1f}", f"{r['best_epoch']}/{r['epochs']}")
+        label = f"{r.config} ({r.code})" if r.code else r.config
+        table.add_row(label, *cells, f"{r.score.ms_per_case:.1f}", f"{r.score.best_epoch}/{r.score.epochs}")
     con = Console(width=160)
     con.print(table)
     for name, rivals in KEY_COMPARISONS:
         won = beats(rows, name, list(rivals))
-        present = [o for o in rivals if o in {r["config"] for r in rows}]
+        present = [o for o in rivals if o in {r.config for r in rows}]
         if won and present:
             wins = [label for k, label, _ in TABLE_METRICS if won[k]]
             con.print(f"{name} vs {', '.join(present)}: better on {len(wins)}/{len(TABLE_METRICS)} metrics"
@@ -168,56 +171,57 @@ def print_ablation(result: dict, store: str, root: Path, split: str, sr: float, 
     con.print(f"wrote ablation.csv and ablation.json to {root}")
 
 
-def print_ablation_seeds(result: dict, root: Path) -> None:
+def print_ablation_seeds(result: "AblationSeedsResult", root: Path) -> None:
     """Mean ± SD per configuration over the seeds, then the seed-paired comparisons that matter."""
     from rich.console import Console
     from rich.table import Table
 
     from bench.ablation import KEY_COMPARISONS, TABLE_METRICS
 
-    seeds = ", ".join(str(s) for s in result["seeds"])
-    table = Table(title=f"test split of {result['store']} (split {result['split']}, SR {result['sr']:g}, "
-                        f"≤ {result['epochs']} epochs; seeds {seeds}): mean ± SD over seeds")
+    seeds = ", ".join(str(s) for s in result.seeds)
+    table = Table(title=f"test split of {result.store} (split {result.split}, SR {result.sr:g}, "
+                        f"≤ {result.epochs} epochs; seeds {seeds}): mean ± SD over seeds")
     for col in ("config", *[label for _, label, _ in TABLE_METRICS]):
         table.add_column(col, justify="left" if col == "config" else "right")
-    for name, stats in result["configs"].items():
-        table.add_row(name, *[f"{stats[k]['mean']:.3f} ± {stats[k]['sd']:.3f}" for k, _, _ in TABLE_METRICS])
+    for name, spreads in result.configs.items():
+        table.add_row(name, *[f"{spreads[k].mean:.3f} ± {spreads[k].sd:.3f}" for k, _, _ in TABLE_METRICS])
     con = Console(width=160)
     con.print(table)
-    n = len(result["seeds"])
+    n = len(result.seeds)
     for name, rival in ((name, rival) for name, rivals in KEY_COMPARISONS for rival in rivals):
-        pair = result["pairs"].get(f"{name} vs {rival}")
+        pair = result.pairs.get(f"{name} vs {rival}")
         if pair is None:
             continue
         md = pair["md_mm"]
-        wins = sum(pair[k]["better_seeds"] == n for k, _, _ in TABLE_METRICS)
-        con.print(f"{name} vs {rival}: MD better on {md['better_seeds']}/{n} seeds, paired difference "
-                  f"{md['mean_diff']:+.3f} ± {md['sd_diff']:.3f} mm; better on every seed for {wins}/"
+        wins = sum(pair[k].better_seeds == n for k, _, _ in TABLE_METRICS)
+        con.print(f"{name} vs {rival}: MD better on {md.better_seeds}/{n} seeds, paired difference "
+                  f"{md.mean_diff:+.3f} ± {md.sd_diff:.3f} mm; better on every seed for {wins}/"
                   f"{len(TABLE_METRICS)} metrics")
     con.print(f"wrote ablation_seeds.json to {root} (per-seed tables under {root}/seed<N>/)")
 
 
-def print_learning_curve(result: dict, root: Path) -> None:
+def print_learning_curve(result: "LearningCurveResult", root: Path) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title=f"{result['config']} on {result['store']}: test split ({result['test_cases']} cases), "
-                        f"split {result['split']}, SR {result['sr']:g}, ≤ {result['epochs']} epochs, seed {result['seed']}")
+    table = Table(title=f"{result.config} on {result.store}: test split ({result.test_cases} cases), "
+                        f"split {result.split}, SR {result.sr:g}, ≤ {result.epochs} epochs, seed {result.seed}")
     for col in ("fraction", "train pairs", "MD mm", "HD mm", "SD mm", "DSC@1mm", "epochs"):
         table.add_column(col, justify="right")
-    for r in result["rows"]:
-        table.add_row(f"{r['fraction']:g}", str(r["train_cases"]), f"{r['md_mm']:.3f}", f"{r['hd_mm']:.3f}",
-                      f"{r['sd_mm']:.3f}", f"{r['dsc_1mm']:.3f}", f"{r['best_epoch']}/{r['epochs']}")
+    for point in result.rows:
+        r = point.score
+        table.add_row(f"{point.fraction:g}", str(r.train_cases), f"{r.md_mm:.3f}", f"{r.hd_mm:.3f}",
+                      f"{r.sd_mm:.3f}", f"{r.dsc_1mm:.3f}", f"{r.best_epoch}/{r.epochs}")
     con = Console(width=160)
     con.print(table)
     labels = {"md_mm": ("MD", "mm"), "hd_mm": ("HD", "mm"), "dsc_1mm": ("1 − DSC@1mm", "")}
-    for key, law in result["laws"].items():
+    for key, law in result.laws.items():
         name, unit = labels[key]
-        target = result["targets"][key]
+        target = result.targets[key]
         goal = f"DSC@1mm {target:g}" if key == "dsc_1mm" else f"{name} {target:g} {unit}"
-        need = result["pairs_needed"].get(key)
+        need = result.pairs_needed.get(key)
         reach = (f"~{need:,.0f} training pairs for {goal}" if need is not None
                  else f"{goal} is not reached: the error does not fall with more data")
-        con.print(f"{name} ≈ {law['a']:.3g} · pairs^(−{law['b']:.2f}) (R² {law['r2']:.2f}): {reach}")
+        con.print(f"{name} ≈ {law.a:.3g} · pairs^(−{law.b:.2f}) (R² {law.r2:.2f}): {reach}")
     con.print("(an extrapolation from these points at this epoch budget, an order of magnitude at best)")
     con.print(f"wrote learning_curve.csv and learning_curve.json to {root}")
