@@ -40,6 +40,7 @@ def _digests_here() -> list[str]:
     return lines
 
 
+@pytest.mark.slow
 def test_concurrent_meshing_with_user_gmsh_settings_gives_the_same_mesh(tmp_path):
     home = tmp_path / "home"
     home.mkdir()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 
+import pytest
 from typer.testing import CliRunner
 
 from cli import app
@@ -15,6 +16,7 @@ ARGS = ["generate", "--shapes", "1", "--pressures", "8,10,12", "--stiffness", "1
         "--fidelity", "fast", "--nodes", "200", "--num-cpus", "1"]
 
 
+@pytest.mark.slow
 def test_disk_full_is_one_line_and_the_rerun_resumes(tmp_path, monkeypatch, local_ray):
     store = str(tmp_path / "s.zarr")
     real_write = PairStore.write_pairs

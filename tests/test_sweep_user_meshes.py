@@ -1,5 +1,6 @@
 """generate --meshes: a user's ED meshes (any meshio format, any unit) as the shape set."""
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from cli import app
@@ -9,6 +10,7 @@ from storage.meshfiles import write_mesh
 from storage.reader import PairReader
 
 
+@pytest.mark.slow
 def test_generate_from_user_meshes_in_cm_and_resume(tmp_path, local_ray):
     folder = tmp_path / "meshes"
     folder.mkdir()
