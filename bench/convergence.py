@@ -222,7 +222,8 @@ class LevelRow:
 
     def as_dict(self) -> dict:
         d = asdict(self)
-        return {**d, **d.pop("error")}
+        error = d.pop("error")
+        return {**d, **error}
 
 
 @dataclass(frozen=True, kw_only=True)

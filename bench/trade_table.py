@@ -158,12 +158,13 @@ def summarise(rows: list[TradeRow], methods: list[str]) -> list[MethodSummary]:
                 continue
             ok = [r for r in rs if r.scored]
             wall = [r.wall_s for r in rs]
+            wall_mean = float(np.mean(wall))
             parts = {part: float(np.mean([getattr(r, part) for r in rs])) for part in ("network_s", "assembly_s", "linear_s")}
             error = (dict(mean_mm=float(np.mean([r.mean_mm for r in ok])), p95_mm=_p95([r.p95_mm for r in ok]),
                           max_mm=float(max(r.max_mm for r in ok))) if ok else {})
             out.append(MethodSummary(resolution=res, method=m, nodes=int(np.median([r.nodes for r in rs])),
-                                     cases=len(rs), ok=len(ok), time_mean_s=float(np.mean(wall)), time_p95_s=_p95(wall),
-                                     other_s=max(0.0, float(np.mean(wall)) - sum(parts.values())), **parts, **error))
+                                     cases=len(rs), ok=len(ok), time_mean_s=wall_mean, time_p95_s=_p95(wall),
+                                     other_s=max(0.0, wall_mean - sum(parts.values())), **parts, **error))
     return out
 
 

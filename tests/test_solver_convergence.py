@@ -194,5 +194,6 @@ def test_the_report_names_its_reference(one_level):
     text = markdown_report(one_level, "# title")
     written = one_level.as_dict()
     assert written["rows"][0]["mean_mm"] == one_level.rows[0].error["mean_mm"] and written["quadrature"] == []
+    assert "error" not in written["rows"][0]  # the figures are flattened beside the row's fields, not nested
     assert "Reference: `accurate` on the hierarchy's finest mesh" in text
     assert "| mean | mid | 50-node | accurate | 1 |" in text and "† | reference |" in text
