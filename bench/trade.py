@@ -153,8 +153,15 @@ class Answer:
 def _inverse_answer(method: str, ed: TetMesh, params: CaseParameters, preset: str, base: str, fibres: str,
                     guess: np.ndarray | None = None, max_updates: int | None = None,
                     network_s: float = 0.0) -> Answer:
-    return _timed_answer(method, lambda: inverse_solve(ed, params, preset, base, initial_unloaded=guess,
-                                                       fibres=fibres, max_updates=max_updates), network_s)
+    """A cold inverse (no guess), or a hybrid's from the network's guess as `unload --method hybrid` runs
+    it: a rough first state, to HYBRID_TOL_MM (or for `max_updates` updates)."""
+    from trainer.evaluation.predict import HYBRID_TOL_MM
+
+    hybrid = method.startswith("hybrid")
+    tol_mm = HYBRID_TOL_MM if hybrid else None
+    return _timed_answer(method, lambda: inverse_solve(ed, params, preset, base, initial_unloaded=guess, tol_mm=tol_mm,
+                                                       fibres=fibres, max_updates=max_updates,
+                                                       rough_first_state=hybrid), network_s)
 
 
 def _timed_answer(method: str, solve, network_s: float = 0.0) -> Answer:

@@ -95,13 +95,14 @@ def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
     """--method hybrid hands fidelity, base and fibres on to the inverse FE solve."""
     import solver.lv
     from solver.parameters import CaseParameters
-    from trainer.evaluation.predict import unload_with_network
+    from trainer.evaluation.predict import HYBRID_TOL_MM, unload_with_network
 
     seen = {}
 
     def fake_inverse(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None, fibres="laplace",
-                     max_updates=None):
-        seen.update(fidelity=fidelity, base=base, fibres=fibres, guess=initial_unloaded)
+                     max_updates=None, rough_first_state=False):
+        seen.update(fidelity=fidelity, base=base, fibres=fibres, guess=initial_unloaded, tol_mm=tol_mm,
+                    rough=rough_first_state)
         return type("R", (), {"unloaded_nodes": mesh.nodes.copy()})()
 
     monkeypatch.setattr(solver.lv, "inverse_solve", fake_inverse)
@@ -110,6 +111,7 @@ def test_hybrid_refines_with_the_asked_fibres_and_base(trained, monkeypatch):
                               "clamped", fibres="heartfem")
     assert seen["fidelity"] == "fast" and seen["base"] == "clamped" and seen["fibres"] == "heartfem"
     assert (seen["guess"] is None) == out.fallback
+    assert seen["tol_mm"] == HYBRID_TOL_MM and seen["rough"]  # hybrid's own tolerance, a rough first state
 
 
 def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(trained, monkeypatch):
@@ -123,7 +125,7 @@ def test_hybrid_starts_again_from_the_ed_mesh_when_the_guess_does_not_converge(t
     calls = []
 
     def inverse_failing_from_a_guess(mesh, params, fidelity, base, initial_unloaded=None, tol_mm=None,
-                                     fibres="laplace", max_updates=None):
+                                     fibres="laplace", max_updates=None, rough_first_state=False):
         calls.append(initial_unloaded is not None)
         if initial_unloaded is not None:
             raise SolveError("step size collapsed at 0.0% of load")

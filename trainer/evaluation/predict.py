@@ -350,6 +350,9 @@ class NetworkUnload:
     guess_attempt_s: float | None = None
 
 
+HYBRID_TOL_MM = 2e-3  # hybrid's inverse stops at this max nodal mismatch (mm) unless `tol_mm` is given
+
+
 def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: str = "accurate",
                         base: str = "sliding", tol_mm: float | None = None, device: str = "cpu",
                         fibres: str = "laplace", asked: dict | None = None, rotations: int = 1,
@@ -357,7 +360,10 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     """Unload an ED TetMesh (mm) at CaseParameters `params`.
 
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
-    with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element).
+    with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element), its
+    first forward solve rough (solver.lv.inverse_solve's `rough_first_state`), to a max nodal mismatch of
+    `tol_mm` (None: HYBRID_TOL_MM, which keeps the answer within ~2e-3 mm of `method` fe's, far inside any
+    preset's discretisation error).
     asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
     differ from the training store's draw a warning. rotations: test-time averaging (Predictor).
     max_updates: hybrid only, stop after that many inverse updates from the guess (solver.lv.inverse_solve).
@@ -398,10 +404,11 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     except MeshError as exc:
         out.warnings.append(f"network guess folds elements ({exc}); inverse FE starts from the ED mesh")
         fallback = True
+    tol_mm = HYBRID_TOL_MM if tol_mm is None else tol_mm
     t = time.perf_counter()
     try:
         result = inverse_solve(mesh, params, fidelity, base, initial_unloaded=None if fallback else guess,
-                               tol_mm=tol_mm, fibres=fibres, max_updates=max_updates)
+                               tol_mm=tol_mm, fibres=fibres, max_updates=max_updates, rough_first_state=True)
     except SolveError as exc:
         if fallback:
             raise
