@@ -362,8 +362,8 @@ def unload_with_network(mesh, params, run_dirs, method: str = "gnn", fidelity: s
     gnn: X = x_ED + network displacement. hybrid: the network's X as the initial guess of inverse FE
     with `fidelity`, `base` and `fibres` (falls back to X0 = x_ED when the guess folds an element), its
     first forward solve rough (solver.lv.inverse_solve's `rough_first_state`), to a max nodal mismatch of
-    `tol_mm` (None: HYBRID_TOL_MM, which keeps the answer within ~2e-3 mm of `method` fe's, far inside any
-    preset's discretisation error).
+    `tol_mm` (None: HYBRID_TOL_MM, which keeps the answer a few 1e-3 mm from `method` fe's, far inside
+    any preset's discretisation error).
     asked: the model choices the user named explicitly ({"base": …, "fibres": …}); with gnn, those that
     differ from the training store's draw a warning. rotations: test-time averaging (Predictor).
     max_updates: hybrid only, stop after that many inverse updates from the guess (solver.lv.inverse_solve).
