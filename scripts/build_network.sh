@@ -67,8 +67,9 @@ if want score; then
         finetuned) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/accurate.zarr" ;;
         refined) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" ;;
     esac
-    # the network at ~330 and ~700 nodes; then every method at ~330 nodes (the table --method auto reads)
-    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 3 --cases 3 --user-nodes 750 \
+    # the network on 6 held-out shapes at ~330 and ~700 nodes; then every method on 3 of them at ~330 nodes
+    # (the table --method auto reads)
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 6 --cases 3 --user-nodes 750 \
         --network-only --threads "$CPUS" --out "$WORK/trade750"
     mkdir -p "$WORK/trade/solves" && cp -n "$WORK/trade750/solves/"* "$WORK/trade/solves/"
     $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 3 --cases 3 --user-nodes 0 \
