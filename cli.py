@@ -465,6 +465,7 @@ def generate(shapes: int = GenerateOptions.shapes, store: str = GenerateOptions.
              endo: str = GenerateOptions.endo, epi: str = GenerateOptions.epi,
              fidelity: str = GenerateOptions.fidelity, base: str = GenerateOptions.base,
              fibres: str = GenerateOptions.fibres, seed: int = GenerateOptions.seed,
+             shape_model: int = GenerateOptions.shape_model,
              nodes: int = GenerateOptions.nodes, meshes: str = GenerateOptions.meshes,
              units: Units = GenerateOptions.units, address: str = GenerateOptions.address,
              connect_timeout: float = GenerateOptions.connect_timeout, num_cpus: int = GenerateOptions.num_cpus,
@@ -480,6 +481,7 @@ def generate(shapes: int = GenerateOptions.shapes, store: str = GenerateOptions.
     with failures():
         request = SweepRequest(store=store, shapes=shapes, pressures=pressures, stiffness=stiffness, endo=endo, epi=epi,
                                fidelity=fidelity, base=base, fibres=fibres, seed=seed, nodes=nodes, meshes=meshes,
+                               shape_model=shape_model,
                                mesh_units=None if units is None else units.value, local=local, address=address,
                                num_cpus=num_cpus, max_in_flight=max_in_flight, retry_failed=retry_failed,
                                retry_damaged=retry_damaged, dry_run=dry_run)

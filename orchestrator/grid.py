@@ -243,7 +243,7 @@ def resolve_spec(explicit: dict, local: bool = False, stored_attrs: dict | None 
         base = SweepSpec()
     values = asdict(base)
     values.update({k: v for k, v in explicit.items() if v is not None})
-    if stored_attrs is not None:  # a store keeps the shape model it was drawn from
+    if stored_attrs is not None and explicit.get("shape_model_version") is None:  # a store keeps its shape model
         values["shape_model_version"] = stored_shape_model_version(stored_attrs)
     return SweepSpec(**values)
 

@@ -15,7 +15,7 @@ from .grid import SweepSpec
 class SweepRequest:
     """A sweep as asked: the `store`; the grid as the command line spells it (comma-separated
     `pressures` mmHg, `stiffness` Pa, `endo` and `epi` helix angles in degrees; None = the store's or
-    the default); the shape set (`shapes` of the shape model at `seed` meshed to about `nodes` nodes,
+    the default); the shape set (`shapes` of the shape model's version `shape_model` at `seed` meshed to about `nodes` nodes,
     or the ED mesh files `meshes`, a folder or a glob, in `mesh_units`); and how it runs: `local`
     (two cores, a tiny grid), `num_cpus` of a local Ray or a cluster at `address`, `max_in_flight`
     tasks, `retry_failed`, `retry_damaged` (damage is repaired, not refused), and `dry_run` (a plan,
@@ -31,6 +31,7 @@ class SweepRequest:
     base: str | None = None
     fibres: str | None = None
     seed: int | None = None
+    shape_model: int | None = None
     nodes: int | None = None
     meshes: str | None = None
     mesh_units: str | None = None
@@ -101,7 +102,7 @@ def resolve_sweep(request: SweepRequest) -> ResolvedSweep:
 
     r = request
     explicit = {"shapes": r.shapes, "fidelity": r.fidelity, "seed": r.seed, "nodes": r.nodes, "base": r.base,
-                "fibres": r.fibres, "mesh_units": r.mesh_units}
+                "fibres": r.fibres, "mesh_units": r.mesh_units, "shape_model_version": r.shape_model}
     if r.meshes is not None:
         explicit["meshes"] = find_meshes(r.meshes)
         explicit["shapes"] = explicit["shapes"] or len(explicit["meshes"])

@@ -6,7 +6,10 @@ set from healthy ranges (EDV 80–220 mL, wall 6–14 mm). Version 2 (`MODES_V2`
 the default of new stores and of `heartctl mesh`) widens it to healthy and diseased anatomy: thin
 walls (5 mm), apical thinning (to ~1 mm), a septum thicker or thinner than the free wall, a
 flattened septum, a base opening narrower than the widest section with the widest section lower
-down, and an apex off the long axis. Version 2 meshes the same truncated ellipsoidal shell (with the
+down, and an apex off the long axis. Version 3 (`UNIFORM_VERSION`) is version 2's modes and geometry with
+each coefficient uniform on [−2, 2] instead: a space-filling draw that meets the family's tails (thin
+walls, a thin apex, a tilted apex, several at once) as often as its centre, for training sets that must
+cover the anatomy a user's mesh may have rather than its frequency. Versions 2 and 3 mesh the same truncated ellipsoidal shell (with the
 thin apex resolved by gmsh) and moves its nodes by a smooth, invertible map (`LVShape.map_nodes`)
 that keeps the base plane z = 0 and every node's height. Frame of version 2: the septum faces −x.
 The CAP atlas of the seed paper cannot be downloaded here, so the modes are geometric; the sources
@@ -38,7 +41,8 @@ MODES: tuple[ShapeMode, ...] = (
 )
 TRUNCATION_SD = 2.0
 SHAPE_MODEL_VERSION = 2  # the version new stores and `heartctl mesh` draw from
-SHAPE_MODEL_VERSIONS = (1, 2)
+SHAPE_MODEL_VERSIONS = (1, 2, 3)
+UNIFORM_VERSION = 3  # version 2's modes, each coefficient uniform on [−TRUNCATION_SD, TRUNCATION_SD]
 
 # Version 2: each mode's mean ± 2 SD is its range (sources: docs/solver.md, "Shape model").
 MODES_V2: tuple[ShapeMode, ...] = (
@@ -180,12 +184,15 @@ def check_version(version) -> int:
 
 
 def shape_coefficients(shape_id: int, seed: int = 0, version: int = 1) -> np.ndarray:
-    """Mode coefficients in SD units, N(0,1) truncated to [−2, 2]; (version, seed, id) → same values,
-    always (version 2 draws its first six modes as version 1 does, then its five new ones)."""
+    """Mode coefficients in SD units, N(0,1) truncated to [−2, 2] (version 3: uniform on [−2, 2]);
+    (version, seed, id) → same values, always (version 2 draws its first six modes as version 1 does,
+    then its five new ones)."""
     if shape_id < 0:
         raise ValueError(f"shape id must be ≥ 0, got {shape_id}")
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(shape_id)]))
     n_modes = len(modes(version))
+    if version == UNIFORM_VERSION:
+        return rng.uniform(-TRUNCATION_SD, TRUNCATION_SD, n_modes)
     out = np.empty(n_modes)
     for k in range(n_modes):
         v = rng.standard_normal()
@@ -202,8 +209,8 @@ def shape_from_coefficients(coefficients, shape_id: int = -1, version: int = 1) 
     n_modes = len(modes(version))
     if coefficients.shape != (n_modes,) or not np.all(np.isfinite(coefficients)):
         raise ValueError(f"expected {n_modes} finite shape coefficients")
-    if version == 2:
-        return _shape_v2(coefficients, shape_id)
+    if version >= 2:
+        return _shape_v2(coefficients, shape_id, version)
     v = {m.name: m.mean + m.sd * c for m, c in zip(MODES, coefficients)}
     k, f, e = v["elongation"], v["base_height"], v["ellipticity"]
     g = (1.0 + f) - (f**3 + 1.0) / 3.0
@@ -215,12 +222,12 @@ def shape_from_coefficients(coefficients, shape_id: int = -1, version: int = 1) 
                    t * v["apex_thickness_ratio"], f * c)
 
 
-def _shape_v2(coefficients: np.ndarray, shape_id: int) -> LVShape:
+def _shape_v2(coefficients: np.ndarray, shape_id: int, version: int = 2) -> LVShape:
     v = {m.name: m.mean + m.sd * c for m, c in zip(MODES_V2, coefficients)}
     k, f, e = v["elongation"], v["base_height"], v["ellipticity"]
     ratio = np.sqrt((1.0 + e) / (1.0 - e))
     t = v["wall_thickness_mm"]
-    extra = dict(version=2, septal_wall_ratio=float(v["septal_wall_ratio"]),
+    extra = dict(version=version, septal_wall_ratio=float(v["septal_wall_ratio"]),
                  septal_flattening=float(v["septal_flattening"]), base_narrowing=float(v["base_narrowing"]),
                  apex_offset_mm=(float(v["apex_offset_x_mm"]), float(v["apex_offset_y_mm"])))
     # the cavity of a unit-size shape after the map (the map's steps that move the endocardium are

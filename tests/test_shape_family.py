@@ -41,7 +41,22 @@ def test_version_2_draws_are_reproducible_and_extend_version_1():
     np.testing.assert_array_equal(m1.nodes, m2.nodes)
     np.testing.assert_array_equal(m1.tets, m2.tets)
     with pytest.raises(ValueError, match="version"):
-        lv_shape(0, 0, 3)
+        lv_shape(0, 0, 4)
+
+
+def test_version_3_draws_version_2_uniformly():
+    """Version 3: version 2's modes and geometry, each coefficient uniform on [−2, 2], so the tails (|c| > 1.5:
+    a quarter of the draws) come about 2.7× as often as in version 2's truncated normal (9 %)."""
+    uniform = np.array([shape_coefficients(i, 0, 3) for i in range(400)])
+    normal = np.array([shape_coefficients(i, 0, 2) for i in range(400)])
+    assert uniform.shape == normal.shape and np.all(np.abs(uniform) <= 2.0)
+    np.testing.assert_array_equal(uniform[5], shape_coefficients(5, 0, 3))
+    assert 0.21 < np.mean(np.abs(uniform) > 1.5) < 0.29
+    assert np.mean(np.abs(normal) > 1.5) < 0.12
+    a, b = lv_shape(4, 0, 3), shape_from_coefficients(uniform[4], 4, 2)
+    assert a.version == 3 and a.has_map()
+    assert (a.endo_semi_axes_mm, a.epi_semi_axes_mm, a.apex_offset_mm) == (b.endo_semi_axes_mm, b.epi_semi_axes_mm,
+                                                                           b.apex_offset_mm)
 
 
 def test_version_1_meshes_unchanged():
@@ -92,6 +107,12 @@ def test_stores_keep_their_shape_model_version():
     assert resumed.shape_model_version == 1 and resumed.conflicts(old_attrs) == []
     assert resolve_spec({"shapes": 5}, local=True, stored_attrs=old_attrs).shape_model_version == 1
     assert any("shape model version" in c for c in SweepSpec(shapes=2).conflicts(old_attrs))
+    uniform = resolve_spec({"shapes": 2, "shape_model_version": 3})
+    assert uniform.store_attrs()["shape_model_version"] == 3
+    v3_attrs = uniform.store_attrs()
+    assert resolve_spec({"shapes": 4, "shape_model_version": None}, stored_attrs=v3_attrs).conflicts(v3_attrs) == []
+    asked_other = resolve_spec({"shapes": 4, "shape_model_version": 2}, stored_attrs=v3_attrs)
+    assert any("shape model version 2 (store has 3)" in c for c in asked_other.conflicts(v3_attrs))
 
 
 @pytest.mark.skipif(not FIXTURES.is_dir(), reason="shared/fixtures/l2u not present")
@@ -131,3 +152,11 @@ def test_cli_mesh_prints_descriptors(tmp_path):
     r = CliRunner().invoke(app, ["mesh", "--shape", "1", "--nodes", "150", "--shape-model", "3",
                                  "-o", str(tmp_path / "m.vtu")])
     assert r.exit_code == 2 and "version" in r.output
+
+
+def test_generate_refuses_an_unknown_shape_model(tmp_path):
+    from cli import app
+
+    res = CliRunner().invoke(app, ["generate", "--store", str(tmp_path / "s.zarr"), "--shape-model", "4", "--dry-run"])
+    assert res.exit_code == 2 and "shape model version must be one of 1, 2, 3" in res.output
+    assert not (tmp_path / "s.zarr").exists()

@@ -222,6 +222,7 @@ class GenerateOptions:
     base = typer.Option(None, "--base", help="Base condition: sliding (default) | clamped | spring | heartfem.")
     fibres = typer.Option(None, "--fibres", help="Fibre rule: laplace (default) | heartfem (the original pipeline's).")
     seed = typer.Option(None, "--seed", help="Shape-model seed (default 0).")
+    shape_model = typer.Option(None, "--shape-model", help="Shape model version of a new store: 2 (default: each mode N(0,1) within ±2 SD) | 3 (the same modes drawn uniformly within ±2 SD: the tails as often as the centre, for training sets) | 1. A store keeps its own.")
     nodes = typer.Option(None, "--nodes", help="Target mesh node count (default 800; --local 350).")
     meshes = typer.Option(None, "--meshes", help="Use your ED meshes as the shape set: a folder or a glob of mesh files (any meshio format; readable by every worker).")
     units = typer.Option(None, "--units", help="Length unit of the --meshes files (default mm).")
