@@ -30,6 +30,10 @@ NEWTON_HALVINGS = 4
 NEWTON_WHEN_SLOWER = 0.5  # a Newton step once an update cut the mismatch by less than this
 NEWTON_JACOBIAN_FRAMES = False  # the products hold X's fibre frames: as many updates, cheaper products
 ROUGH_FIRST_STATE_FORCE = 0.1  # rough_first_state: stop at |R|∞ ≤ this × P · (mean endo facet area)
+# an inverse whose last STALL_UPDATES updates all left the mismatch above STALL_GAIN × its best before them
+# has failed: converging solves cut it ~5× over as many updates (docs/solver.md, "Stability at the extremes")
+STALL_UPDATES = 10
+STALL_GAIN = 0.9
 
 
 def _supports(mesh: TetMesh, base: str) -> Supports:
@@ -239,7 +243,8 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
 
     `max_updates` k: stop after at most k fixed-point updates and return that reference with its
     mismatch, met tolerance or not (a fixed budget asked for by the caller: `bench trade`'s
-    "network guess + k updates"); without it, not reaching tol_mm in the preset's updates raises.
+    "network guess + k updates"); without it, not reaching tol_mm in the preset's updates raises, and so
+    does an inverse that stalls (`_stalled`: no mismatch below 0.9 × the best for 10 updates) or diverges.
 
     `rough_first_state` (a guess whose error is tenths of a mm, such as a network's): the first forward
     solve on the guessed reference stops at |R|∞ ≤ ROUGH_FIRST_STATE_FORCE · P · (mean endo facet area)
@@ -285,11 +290,23 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
             return InverseResult(X, err, update, stats, history, z, problem)
         if update == budget:
             break
+        if _stalled(history):
+            stats.wall_s = time.perf_counter() - t_start
+            raise SolveError(f"inverse FE stalled: the mismatch stayed above {STALL_GAIN:g} × its best "
+                             f"({min(history[:-STALL_UPDATES]):.3g} mm) for {STALL_UPDATES} updates "
+                             f"(now {err:.3g} mm, update {update})")
         X, z = _update_reference(problem, z, X, mismatch, history, accel, stats,
                                  _UpdateContext(ed_mesh, params, fid, fibres, linsolve, reuse_factor, update))
     stats.wall_s = time.perf_counter() - t_start
     raise SolveError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
                      f"(mismatch {history[-1]:.3g} mm)")
+
+
+def _stalled(history: list) -> bool:
+    """The last STALL_UPDATES mismatches (mm) all above STALL_GAIN × the best one before them."""
+    if len(history) <= STALL_UPDATES:
+        return False
+    return min(history[-STALL_UPDATES:]) > STALL_GAIN * min(history[:-STALL_UPDATES])
 
 
 def _first_state(problem: MechanicsProblem, params: CaseParameters, x_ed: np.ndarray, X: np.ndarray, guessed: bool,

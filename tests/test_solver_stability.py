@@ -44,3 +44,25 @@ def test_beyond_the_box_fails_with_its_reason(extreme_mesh):
     assert not row.ok and not row.solved and "roundtrip_mm" not in row.as_dict()
     assert "step size collapsed" in row.reason and math.isfinite(row.wall_s)
     assert "0/1" in region_table([replace(row, box="extended", shape="all −2 SD")])
+
+
+def test_a_stalled_inverse_fails_early_with_its_reason(monkeypatch):
+    """An inverse whose mismatch stops falling is a failure after STALL_UPDATES updates, not after the preset's
+    60: the update here leaves the reference where it is, so the mismatch never moves."""
+    import solver.lv as lv
+    from solver.forward import SolveError
+
+    assert not lv._stalled([4.0, 2.9, 3.8, 1.0, 0.5, 0.3, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01])
+    assert lv._stalled([4.0, 2.9] + [2.7] * lv.STALL_UPDATES)
+    assert not lv._stalled([2.9] * lv.STALL_UPDATES)  # too few updates to judge
+    calls = []
+
+    def still(problem, z, X, mismatch, history, accel, stats, ctx):
+        calls.append(len(history))
+        return X, z
+
+    monkeypatch.setattr(lv, "_update_reference", still)
+    mesh = mesh_lv(extreme_shapes()[0], 120)
+    with pytest.raises(SolveError, match="stalled"):
+        lv.inverse_solve(mesh, CaseParameters(8.0, 150.0, 60.0, -60.0), "fast")
+    assert calls == list(range(1, lv.STALL_UPDATES + 1))
