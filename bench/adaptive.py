@@ -23,7 +23,8 @@ from solver.adaptive import adaptive_unload
 from solver.elements import build_dofmap, cell_quadrature, simplex_shape, tet_geometry
 from solver.error_indicator import INDICATOR_QUAD_DEGREE, gradient_indicator
 from solver.local_refine import refine_marked
-from solver.lv import displacement_at_dofs, inverse_solve, refined_unloaded
+from solver.lv import displacement_at_dofs, inverse_solve
+from solver.refine import refined_unloaded
 from solver.meshing import mesh_lv
 from solver.mesh import TetMesh
 from solver.parameters import CaseParameters

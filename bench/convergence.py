@@ -17,7 +17,8 @@ import numpy as np
 
 from solver.fidelity import Fidelity, get_fidelity
 from solver.forward import SolveError
-from solver.lv import displacement_at_dofs, inverse_solve, refined_unloaded
+from solver.lv import displacement_at_dofs, inverse_solve
+from solver.refine import refined_unloaded
 from solver.meshing import mesh_lv
 from solver.mesh import TetMesh
 from solver.parameters import CaseParameters

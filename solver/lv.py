@@ -21,7 +21,7 @@ from .material import FungParameters
 from .mesh import MeshError, TetMesh, check_geometry
 from .parameters import BASE_CONDITIONS, FIBRE_RULES, CaseParameters
 from .progress import report
-from .refine import prolongate, refine_uniform
+from .refine import refine_uniform, refined_unloaded
 
 EPI_SPRING_PA_PER_MM = 9.0  # the original pipeline's 90 Pa per unit length, with lengths in cm
 
@@ -424,26 +424,6 @@ def displacement_at_dofs(inverse: InverseResult) -> np.ndarray:
     """The inverse's final displacement u = x − X at every node of its element [n_dofs, 3] (P2: the
     vertices, then the edge midpoints in the order of `refine.refine_uniform`'s new nodes)."""
     return inverse.problem.split(inverse.state)[0].copy()
-
-
-def refined_unloaded(ed_mesh: TetMesh, unloaded: np.ndarray, displacement: np.ndarray | None = None,
-                     levels: int = 1) -> np.ndarray:
-    """An unloaded geometry on refine_uniform(ed_mesh, levels) from one on `ed_mesh`. With the P2
-    displacement of its solve (`displacement_at_dofs`), each new midpoint takes X = x_ED − u there:
-    one fixed-point step from where the P2 solution puts it, where interpolating X ignores the
-    solution's curvature along the edge (an inverse on the refined mesh starts closer to its answer,
-    docs/solver.md). Otherwise, and for further levels, X is interpolated linearly."""
-    unloaded = np.asarray(unloaded, dtype=float)
-    if unloaded.shape != ed_mesh.nodes.shape or not np.all(np.isfinite(unloaded)):
-        raise ValueError("initial unloaded guess must be finite and have one point per ED node")
-    if displacement is None or levels < 1:
-        return prolongate(unloaded, ed_mesh, levels)
-    fine = refine_uniform(ed_mesh, 1)
-    if displacement.shape != fine.nodes.shape:  # a P1 solve: no midpoint values
-        return prolongate(unloaded, ed_mesh, levels)
-    X = fine.nodes - displacement
-    X[: ed_mesh.n_nodes] = unloaded
-    return prolongate(X, fine, levels - 1)
 
 
 def _refined_guess(ed_mesh: TetMesh, params: CaseParameters, fid: Fidelity, base: str,

@@ -73,3 +73,23 @@ def prolongate(values: np.ndarray, coarse: TetMesh, levels: int = 1) -> np.ndarr
         if level < levels - 1:
             mesh = _refine_once(mesh)
     return values
+
+
+def refined_unloaded(ed_mesh: TetMesh, unloaded: np.ndarray, displacement: np.ndarray | None = None,
+                     levels: int = 1) -> np.ndarray:
+    """An unloaded geometry on refine_uniform(ed_mesh, levels) from one on `ed_mesh`. With the P2
+    displacement of its solve (`displacement_at_dofs`), each new midpoint takes X = x_ED − u there:
+    one fixed-point step from where the P2 solution puts it, where interpolating X ignores the
+    solution's curvature along the edge (an inverse on the refined mesh starts closer to its answer,
+    docs/solver.md). Otherwise, and for further levels, X is interpolated linearly."""
+    unloaded = np.asarray(unloaded, dtype=float)
+    if unloaded.shape != ed_mesh.nodes.shape or not np.all(np.isfinite(unloaded)):
+        raise ValueError("initial unloaded guess must be finite and have one point per ED node")
+    if displacement is None or levels < 1:
+        return prolongate(unloaded, ed_mesh, levels)
+    fine = refine_uniform(ed_mesh, 1)
+    if displacement.shape != fine.nodes.shape:  # a P1 solve: no midpoint values
+        return prolongate(unloaded, ed_mesh, levels)
+    X = fine.nodes - displacement
+    X[: ed_mesh.n_nodes] = unloaded
+    return prolongate(X, fine, levels - 1)

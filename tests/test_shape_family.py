@@ -149,7 +149,7 @@ def test_cli_mesh_prints_descriptors(tmp_path):
     assert r.exit_code == 0, r.output
     assert "shape model 2" in r.output
     assert "mid-wall thickness" in r.output and "apex offset from the long axis" in r.output
-    r = CliRunner().invoke(app, ["mesh", "--shape", "1", "--nodes", "150", "--shape-model", "3",
+    r = CliRunner().invoke(app, ["mesh", "--shape", "1", "--nodes", "150", "--shape-model", "4",
                                  "-o", str(tmp_path / "m.vtu")])
     assert r.exit_code == 2 and "version" in r.output
 
