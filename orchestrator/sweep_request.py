@@ -15,8 +15,8 @@ from .grid import SweepSpec
 class SweepRequest:
     """A sweep as asked: the `store`; the grid as the command line spells it (comma-separated
     `pressures` mmHg, `stiffness` Pa, `endo` and `epi` helix angles in degrees; None = the store's or
-    the default); the shape set (`shapes` of the shape model's version `shape_model` at `seed` meshed to about `nodes` nodes,
-    or the ED mesh files `meshes`, a folder or a glob, in `mesh_units`); and how it runs: `local`
+    the default); the shape set (`shapes` of the shape model's version `shape_model` at `seed` meshed to
+    about `nodes` nodes, or the ED mesh files `meshes`, a folder or a glob, in `mesh_units`); and how it runs: `local`
     (two cores, a tiny grid), `num_cpus` of a local Ray or a cluster at `address`, `max_in_flight`
     tasks, `retry_failed`, `retry_damaged` (damage is repaired, not refused), and `dry_run` (a plan,
     nothing written)."""

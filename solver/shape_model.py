@@ -6,12 +6,12 @@ set from healthy ranges (EDV 80–220 mL, wall 6–14 mm). Version 2 (`MODES_V2`
 the default of new stores and of `heartctl mesh`) widens it to healthy and diseased anatomy: thin
 walls (5 mm), apical thinning (to ~1 mm), a septum thicker or thinner than the free wall, a
 flattened septum, a base opening narrower than the widest section with the widest section lower
-down, and an apex off the long axis. Version 3 (`UNIFORM_VERSION`) is version 2's modes and geometry with
-each coefficient uniform on [−2, 2] instead: a space-filling draw that meets the family's tails (thin
-walls, a thin apex, a tilted apex, several at once) as often as its centre, for training sets that must
-cover the anatomy a user's mesh may have rather than its frequency. Versions 2 and 3 mesh the same truncated ellipsoidal shell (with the
-thin apex resolved by gmsh) and moves its nodes by a smooth, invertible map (`LVShape.map_nodes`)
-that keeps the base plane z = 0 and every node's height. Frame of version 2: the septum faces −x.
+down, and an apex off the long axis. Version 3 (`UNIFORM_VERSION`) is version 2's modes and geometry
+with each coefficient uniform on [−2, 2] instead: a space-filling draw that meets the family's tails
+(thin walls, a thin apex, a tilted apex, several at once) as often as its centre, for training sets
+that must cover the anatomy a user's mesh may have rather than its frequency. Versions 2 and 3 mesh
+the same truncated ellipsoidal shell (with the thin apex resolved by gmsh) and move its nodes by a
+smooth, invertible map (`LVShape.map_nodes`) that keeps the base plane z = 0 and every node's height. Frame of version 2: the septum faces −x.
 The CAP atlas of the seed paper cannot be downloaded here, so the modes are geometric; the sources
 of each range are in docs/solver.md. A store records the version it was drawn from
 (`shape_model_version`; none recorded = 1) and keeps drawing it."""
