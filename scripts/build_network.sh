@@ -15,11 +15,11 @@ WORK=${WORK:-build/network}
 CPUS=${CPUS:-2}
 REF_SHAPES=${REF_SHAPES:-0}
 if [ "$REF_SHAPES" -gt 0 ]; then
-    STEPS=${STEPS:-"fast accurate more reference pretrain finetune broaden refine score package"}
+    STEPS=${STEPS:-"fast accurate more reference pretrain finetune broaden grow widen refine score package"}
     SHIP=${SHIP:-refined}
 else
-    STEPS=${STEPS:-"fast accurate more pretrain finetune broaden score package"}
-    SHIP=${SHIP:-broadened}   # the run scored and packaged (finetuned, pretrained: the earlier stages alone)
+    STEPS=${STEPS:-"fast accurate more pretrain finetune broaden grow widen score package"}
+    SHIP=${SHIP:-widened}   # the run scored and packaged (broadened, finetuned, pretrained: earlier stages)
 fi
 mkdir -p "$WORK"
 
@@ -29,9 +29,11 @@ mkdir -p "$WORK"
 # Optionally a third stage on REF_SHAPES shapes of seed 0 with `reference` labels (30 s to minutes a pair),
 # at the helix box's centre. Held out: seed 0 from shape 20 on.
 # Broadening: MORE_SHAPES shapes of seed 2, `accurate` labels on the box's corners and centre pressure
-# (P 4, 9, 14 × C 50, 300 × the four helix corners: 24 cases a shape, ~1.4 s a pair).
+# (P 4, 9, 14 × C 50, 300 × the four helix corners: 24 cases a shape, ~1.4 s a pair), then the same store
+# grown to WIDE_SHAPES shapes for a last, gentler fine-tuning.
 ACC_SHAPES=${ACC_SHAPES:-20}
 MORE_SHAPES=${MORE_SHAPES:-64}
+WIDE_SHAPES=${WIDE_SHAPES:-106}
 GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
 REF_GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 65 --epi=-65 --nodes 350 --num-cpus "$CPUS")
 
@@ -45,10 +47,10 @@ if want accurate; then
     echo "== accurate labels for fine-tuning: $ACC_SHAPES shapes (seed 0) × 3 P × 3 C × 2 × 2 helix"
     $HEARTCTL generate --shapes "$ACC_SHAPES" --seed 0 "${GRID[@]}" --fidelity accurate --store "$WORK/accurate.zarr"
 fi
+MORE_GRID=(--seed 2 --pressures 4,9,14 --stiffness 50,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
 if want more; then
     echo "== accurate labels for broadening: $MORE_SHAPES shapes (seed 2) × 3 P × 2 C × 2 × 2 helix"
-    $HEARTCTL generate --shapes "$MORE_SHAPES" --seed 2 --pressures 4,9,14 --stiffness 50,300 --endo 60,70 \
-        --epi=-60,-70 --nodes 350 --num-cpus "$CPUS" --fidelity accurate --store "$WORK/more.zarr"
+    $HEARTCTL generate --shapes "$MORE_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/more.zarr"
 fi
 if want reference; then
     echo "== reference labels for the last stage: $REF_SHAPES shapes (seed 0) × 3 P × 3 C, helix 65 / −65°"
@@ -69,16 +71,27 @@ if want broaden; then
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/more.zarr" \
         --run-dir "$WORK/broadened" --epochs 15 --lr 3e-4 --init-from "$WORK/finetuned"
 fi
+if want grow; then
+    echo "== a copy of the broadening store grown to $WIDE_SHAPES shapes"
+    [ -d "$WORK/wide.zarr" ] || cp -r "$WORK/more.zarr" "$WORK/wide.zarr"
+    $HEARTCTL generate --shapes "$WIDE_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/wide.zarr"
+fi
+if want widen; then
+    echo "== fine-tuning on the grown store"
+    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/wide.zarr" \
+        --run-dir "$WORK/widened" --epochs 12 --lr 2e-4 --init-from "$WORK/broadened"
+fi
 if want refine; then
     echo "== fine-tuning on the reference labels"
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/reference.zarr" \
-        --run-dir "$WORK/refined" --epochs 100 --lr 1e-4 --init-from "$WORK/broadened"
+        --run-dir "$WORK/refined" --epochs 100 --lr 1e-4 --init-from "$WORK/widened"
 fi
 if want score; then
     echo "== scoring: the label store's test split, held-out shapes 20– (seed 0) against reference, the atlas LV"
     case "$SHIP" in  # its test split: shapes of its last label store it never trained on
         finetuned) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/accurate.zarr" ;;
         broadened) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/more.zarr" ;;
+        widened) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/wide.zarr" ;;
         refined) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" ;;
     esac
     # the network on 6 held-out shapes at ~330 and ~700 nodes; then every method on 3 of them at ~330 nodes
