@@ -38,6 +38,11 @@ GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 60,70 --epi=-60,-70 --nod
 REF_GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 65 --epi=-65 --nodes 350 --num-cpus "$CPUS")
 
 want() { [[ " $STEPS " == *" $1 "* ]]; }
+# train RUN STORE EPOCHS [LR PARENT]: the recommended network on STORE, from PARENT's weights when given
+train() {
+    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/$2" --run-dir "$WORK/$1" \
+        --epochs "$3" ${4:+--lr "$4"} ${5:+--init-from "$WORK/$5"}
+}
 
 if want fast; then
     echo "== fast labels for pretraining: 60 shapes (seed 1) × 3 P × 3 C × 2 × 2 helix"
@@ -58,18 +63,15 @@ if want reference; then
 fi
 if want pretrain; then
     echo "== pretraining on the fast labels"
-    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/fast.zarr" \
-        --run-dir "$WORK/pretrained" --epochs 20
+    train pretrained fast.zarr 20
 fi
 if want finetune; then
     echo "== fine-tuning on the accurate labels"
-    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/accurate.zarr" \
-        --run-dir "$WORK/finetuned" --epochs 15 --lr 3e-4 --init-from "$WORK/pretrained"
+    train finetuned accurate.zarr 15 3e-4 pretrained
 fi
 if want broaden; then
     echo "== fine-tuning on the broadening labels (more shapes)"
-    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/more.zarr" \
-        --run-dir "$WORK/broadened" --epochs 15 --lr 3e-4 --init-from "$WORK/finetuned"
+    train broadened more.zarr 15 3e-4 finetuned
 fi
 if want grow; then
     echo "== a copy of the broadening store grown to $WIDE_SHAPES shapes"
@@ -78,13 +80,11 @@ if want grow; then
 fi
 if want widen; then
     echo "== fine-tuning on the grown store"
-    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/wide.zarr" \
-        --run-dir "$WORK/widened" --epochs 12 --lr 2e-4 --init-from "$WORK/broadened"
+    train widened wide.zarr 12 2e-4 broadened
 fi
 if want refine; then
     echo "== fine-tuning on the reference labels"
-    $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/reference.zarr" \
-        --run-dir "$WORK/refined" --epochs 100 --lr 1e-4 --init-from "$WORK/widened"
+    train refined reference.zarr 100 1e-4 widened
 fi
 if want score; then
     echo "== scoring: the label store's test split, held-out shapes 20– (seed 0) against reference, the atlas LV"
