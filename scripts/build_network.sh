@@ -25,7 +25,7 @@ mkdir -p "$WORK"
 
 # The training box: the paper's (P 4–14 mmHg, C 50–300 Pa, helix 60–70 / −60…−70°), ~350-node meshes of the
 # shape model (version 2), helix at the box's four corners. Pretraining: 60 shapes of seed 1, `fast` labels
-# (~0.3 s a pair on one core). Fine-tuning: ACC_SHAPES shapes of seed 0, `accurate` labels (~3 s a pair).
+# (~0.3 s a pair on one core). Fine-tuning: ACC_SHAPES shapes of seed 0, `accurate` labels (1.4–4 s a pair).
 # Optionally a third stage on REF_SHAPES shapes of seed 0 with `reference` labels (30 s to minutes a pair),
 # at the helix box's centre. Held out: seed 0 from shape 20 on.
 # Broadening: MORE_SHAPES shapes of seed 2, `accurate` labels on the box's corners and centre pressure
@@ -75,7 +75,10 @@ if want broaden; then
 fi
 if want grow; then
     echo "== a copy of the broadening store grown to $WIDE_SHAPES shapes"
-    [ -d "$WORK/wide.zarr" ] || cp -r "$WORK/more.zarr" "$WORK/wide.zarr"
+    if [ ! -d "$WORK/wide.zarr" ]; then  # copied whole or not at all: an interrupted copy is started again
+        rm -rf "$WORK/wide.zarr.copying" && cp -r "$WORK/more.zarr" "$WORK/wide.zarr.copying"
+        mv "$WORK/wide.zarr.copying" "$WORK/wide.zarr"
+    fi
     $HEARTCTL generate --shapes "$WIDE_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/wide.zarr"
 fi
 if want widen; then
@@ -89,11 +92,10 @@ fi
 if want score; then
     echo "== scoring: the label store's test split, held-out shapes 20– (seed 0) against reference, the atlas LV"
     case "$SHIP" in  # its test split: shapes of its last label store it never trained on
-        finetuned) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/accurate.zarr" ;;
-        broadened) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/more.zarr" ;;
-        widened) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/wide.zarr" ;;
-        refined) $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/reference.zarr" ;;
+        pretrained) last=fast.zarr ;; finetuned) last=accurate.zarr ;; broadened) last=more.zarr ;;
+        widened) last=wide.zarr ;; refined) last=reference.zarr ;;
     esac
+    $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/$last"
     # the network on 6 held-out shapes at ~330 and ~700 nodes; then every method on 3 of them at ~330 nodes
     # (the table --method auto reads)
     $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --first-shape 20 --shapes 6 --cases 3 --user-nodes 750 \
