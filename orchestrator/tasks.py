@@ -70,7 +70,9 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     """One training pair: inverse then forward FE. A solver failure (SolveError, or an inverted
     trial geometry) is retried once with `robust_fidelity`, from the ED mesh (never from
     `initial_unloaded`); if that fails too the result says so (ok False, reason) — this function does
-    not raise for a case that will not solve.
+    not raise for a case that will not solve. An inverse that failed by its own iteration
+    (`InverseError`: stalled, folded, out of updates) from the ED mesh is not retried: smaller load
+    steps repeat the same updates.
 
     mesh: solver TetMesh (the ED geometry); params: (P mmHg, C Pa, θendo °, θepi °) or CaseParameters;
     initial_unloaded: a starting unloaded geometry [n, 3] mm for the first attempt (warm start);
@@ -81,6 +83,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     _single_thread()
     from solver.fidelity import get_fidelity
     from solver.forward import SolveError
+    from solver.inverse_failure import InverseError
     from solver.lv import make_pair
     from solver.mesh import MeshError
     from solver.parameters import CaseParameters
@@ -92,7 +95,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     fid = get_fidelity(fidelity) if isinstance(fidelity, str) else fidelity
     settings = [(fid, initial_unloaded, workspace), (robust_fidelity(fid), None, None)]
     settings = settings if retry else settings[:1]
-    pair, reasons, attempts = None, [], 0
+    pair, reasons, attempts, inverse_failed = None, [], 0, False
     for setting, guess, shared in settings:
         attempts += 1
         try:
@@ -100,6 +103,9 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
             break
         except (SolveError, MeshError) as exc:
             reasons.append(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+            inverse_failed = isinstance(exc, InverseError)
+            if inverse_failed and guess is None:
+                break
         except MemoryError:
             raise  # the worker's trouble, not the case's: the driver leaves the chain pending
         except Exception as exc:  # e.g. a linear solver's "factor is exactly singular": this case fails, the chain goes on
@@ -112,6 +118,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
     if pair is None:
         out["reason"] = reasons[-1]
         out["first_reason"] = reasons[0]
+        out["inverse_failed"] = inverse_failed
     else:
         out["unloaded"] = np.asarray(pair.unloaded_nodes, dtype=float)
         out["loaded"] = np.asarray(pair.loaded_nodes, dtype=float)
@@ -126,15 +133,22 @@ def run_chain(mesh, params_list, fidelity: str, base: str = "sliding", fibres: s
     extrapolated in pressure from the chain's cases solved so far (`solver.lv.unloaded_guess`), which
     converges to the same tolerance in fewer iterations. A guess that folds an element is dropped (the
     case then starts from its ED mesh). The cases share one `PairWorkspace` (FE problem and sparse
-    solver). Returns one `run_case` result per case, in order."""
+    solver). Once a case's inverse fails by its own iteration (`run_case`'s `inverse_failed`: the
+    reference folds or the mismatch stalls), the chain's higher pressures, which deform the wall
+    further, are recorded as failed with that reason and not solved (`generate --retry-failed` solves
+    them). Returns one result per case, in order."""
     _single_thread()
     from solver.lv import PairWorkspace, unloaded_guess
     from solver.mesh import MeshError, check_geometry
 
-    solved, results = [], []
+    solved, results, gave_out = [], [], None
     with PairWorkspace(mesh) as workspace:
         for params in params_list:
             pressure = float(params[0] if not hasattr(params, "pressure_mmhg") else params.pressure_mmhg)
+            if gave_out is not None:
+                results.append(_not_attempted(f"not solved: the inverse failed at {gave_out[0]:g} mmHg in this "
+                                              f"chain, a lower pressure ({gave_out[1]})"))
+                continue
             guess = unloaded_guess(solved, pressure) if warm_start else None
             if guess is not None:
                 try:
@@ -145,8 +159,18 @@ def run_chain(mesh, params_list, fidelity: str, base: str = "sliding", fibres: s
             res["warm_start"] = guess is not None
             if res["ok"]:
                 solved.append((pressure, res["unloaded"]))
+            elif res.get("inverse_failed"):
+                gave_out = (pressure, res["reason"])
             results.append(res)
     return results
+
+
+def _not_attempted(reason: str) -> dict:
+    """run_case's result for a case left unsolved on purpose, with its reason."""
+    now = time.time()
+    return {"ok": False, "attempts": 0, "host": socket.gethostname(), "pid": os.getpid(), "node": ray_node_id(),
+            "started_at": now, "finished_at": now, "task_wall_s": 0.0, "unloaded": None, "loaded": None,
+            "stats": {}, "reason": reason, "first_reason": reason, "warm_start": False}
 
 
 def warm_up(seconds: float = 0.2) -> int:

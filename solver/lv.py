@@ -15,6 +15,7 @@ from .elements import quadrature_barycentric
 from .fibres import rule_frames
 from .fidelity import Fidelity, get_fidelity
 from .forward import SolveError, SolveStats, inflate
+from .inverse_failure import STALL_GAIN, STALL_UPDATES, InverseError, stalled, where_largest
 from .inverse_newton import newton_krylov_step
 from .linear import SingularMatrix, SparseSolver
 from .material import FungParameters
@@ -30,10 +31,6 @@ NEWTON_HALVINGS = 4
 NEWTON_WHEN_SLOWER = 0.5  # a Newton step once an update cut the mismatch by less than this
 NEWTON_JACOBIAN_FRAMES = False  # the products hold X's fibre frames: as many updates, cheaper products
 ROUGH_FIRST_STATE_FORCE = 0.1  # rough_first_state: stop at |R|∞ ≤ this × P · (mean endo facet area)
-# an inverse whose last STALL_UPDATES updates all left the mismatch above STALL_GAIN × its best before them
-# has failed: converging solves cut it ~5× over as many updates (docs/solver.md, "Stability at the extremes")
-STALL_UPDATES = 10
-STALL_GAIN = 0.9
 
 
 def _supports(mesh: TetMesh, base: str) -> Supports:
@@ -244,7 +241,7 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
     `max_updates` k: stop after at most k fixed-point updates and return that reference with its
     mismatch, met tolerance or not (a fixed budget asked for by the caller: `bench trade`'s
     "network guess + k updates"); without it, not reaching tol_mm in the preset's updates raises, and so
-    does an inverse that stalls or diverges first (`_stalled`: 10 updates without a mismatch below 0.9 ×
+    does an inverse that stalls or diverges first (`inverse_failure.stalled`: 10 updates without a mismatch below 0.9 ×
     the best before them).
 
     `rough_first_state` (a guess whose error is tenths of a mm, such as a network's): the first forward
@@ -291,23 +288,14 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
             return InverseResult(X, err, update, stats, history, z, problem)
         if update == budget:
             break
-        if _stalled(history):
-            stats.wall_s = time.perf_counter() - t_start
-            raise SolveError(f"inverse FE stalled: the mismatch stayed above {STALL_GAIN:g} × its best "
-                             f"({min(history[:-STALL_UPDATES]):.3g} mm) for {STALL_UPDATES} updates "
-                             f"(now {err:.3g} mm, update {update})")
+        if stalled(history):
+            raise InverseError(f"inverse FE stalled: the mismatch stayed above {STALL_GAIN:g} × its best "
+                               f"({min(history[:-STALL_UPDATES]):.3g} mm) for {STALL_UPDATES} updates "
+                               f"(now {err:.3g} mm, {where_largest(mismatch, x_ed)}; update {update})")
         X, z = _update_reference(problem, z, X, mismatch, history, accel, stats,
                                  _UpdateContext(ed_mesh, params, fid, fibres, linsolve, reuse_factor, update))
-    stats.wall_s = time.perf_counter() - t_start
-    raise SolveError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
-                     f"(mismatch {history[-1]:.3g} mm)")
-
-
-def _stalled(history: list) -> bool:
-    """The last STALL_UPDATES mismatches (mm) all above STALL_GAIN × the best one before them."""
-    if len(history) <= STALL_UPDATES:
-        return False
-    return min(history[-STALL_UPDATES:]) > STALL_GAIN * min(history[:-STALL_UPDATES])
+    raise InverseError(f"inverse FE did not reach {tol:g} mm in {fid.max_inverse_updates} updates "
+                       f"(mismatch {history[-1]:.3g} mm, {where_largest(mismatch, x_ed)})")
 
 
 def _first_state(problem: MechanicsProblem, params: CaseParameters, x_ed: np.ndarray, X: np.ndarray, guessed: bool,
@@ -380,7 +368,8 @@ def _update_reference(problem: MechanicsProblem, z_prev: np.ndarray, X_prev: np.
             accel.reset()
             if not accelerated:
                 if isinstance(exc, MeshError):
-                    raise SolveError(f"inverse update {ctx.update + 1} produced an invalid reference ({exc})") from None
+                    raise InverseError(f"inverse update {ctx.update + 1} produced an invalid reference ({exc}; "
+                                       f"mismatch before it {where_largest(mismatch, ctx.ed_mesh.nodes)})") from None
                 raise
 
 

@@ -129,6 +129,38 @@ def test_an_unexpected_error_fails_its_case_only(mesh, monkeypatch):
         run_case(mesh, CHAIN[0], "fast")
 
 
+def test_an_inverse_that_gives_out_is_not_retried_and_ends_its_chain(mesh, monkeypatch):
+    """A stalled or folding inverse from the ED mesh is not retried (smaller load steps repeat its updates),
+    and the chain's higher pressures are recorded as failed with the reason, unsolved; a forward solve's
+    failure is still retried and the chain goes on."""
+    import solver.lv
+    from solver.forward import SolveError
+    from solver.inverse_failure import InverseError
+
+    real, calls = solver.lv.make_pair, []
+
+    def failing_at(pressure, error):
+        def make_pair(mesh_, params, *args, **kwargs):
+            calls.append(params.pressure_mmhg)
+            if params.pressure_mmhg == pressure:
+                raise error
+            return real(mesh_, params, *args, **kwargs)
+        return make_pair
+
+    monkeypatch.setattr(solver.lv, "make_pair", failing_at(6.0, InverseError("inverse FE stalled: … largest at 3 %")))
+    res = run_chain(mesh, CHAIN, "fast")
+    assert [r["ok"] for r in res] == [False, False, False] and calls == [6.0]
+    assert res[0]["attempts"] == 1 and res[0]["reason"].startswith("inverse FE stalled")
+    assert [r["attempts"] for r in res[1:]] == [0, 0]
+    assert res[2]["reason"].startswith("not solved: the inverse failed at 6 mmHg") and "stalled" in res[2]["reason"]
+
+    calls.clear()
+    monkeypatch.setattr(solver.lv, "make_pair", failing_at(10.0, SolveError("step size collapsed at 40 % of load")))
+    res = run_chain(mesh, CHAIN, "fast")
+    assert [r["ok"] for r in res] == [True, False, True] and calls == [6.0, 10.0, 10.0, 14.0]
+    assert res[1]["attempts"] == 2 and not res[1]["inverse_failed"]
+
+
 def test_in_flight_limit_follows_the_cluster_as_nodes_join():
     from orchestrator.pacing import InFlightLimit
 
