@@ -28,6 +28,11 @@ def test_shape_split_keeps_shapes_apart_and_is_seeded(store):
     assert len(shapes["test"]) == 2  # round(0.3 × 5)
     assert make_split(cases.keys, cases.params, "shape", seed=0) == a
     assert any(make_split(cases.keys, cases.params, "shape", seed=s)["test"] != a["test"] for s in range(1, 6))
+    # shape:F tests on the fraction F of the shapes (at least one); the rest train, as many as it allows
+    small = make_split(cases.keys, cases.params, "shape:0.1", seed=0)
+    assert len({k[0] for k in small["test"]}) == 1 and len(small["train"]) > len(a["train"])
+    assert not ({k[0] for k in small["test"]} & {k[0] for k in small["train"] + small["val"]})
+    assert make_split(cases.keys, cases.params, "shape:0.4", seed=0)["test"] == a["test"]  # round(0.4 × 5) = 2
 
 
 def test_lovo_split_holds_out_one_value(store):
@@ -41,7 +46,8 @@ def test_lovo_split_holds_out_one_value(store):
         make_split(cases.keys, cases.params, "lovo:P=10", seed=0)
 
 
-@pytest.mark.parametrize("spec", ["shapes", "lovo:", "lovo:Q=3", "lovo:P=abc", "lovo:P=nan", "kfold"])
+@pytest.mark.parametrize("spec", ["shapes", "lovo:", "lovo:Q=3", "lovo:P=abc", "lovo:P=nan", "kfold", "shape:0",
+                                  "shape:1", "shape:x", "shape:nan"])
 def test_bad_split_specs(spec):
     with pytest.raises(TrainerError):
         parse_split(spec)

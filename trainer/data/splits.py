@@ -24,10 +24,20 @@ Key = tuple  # (shape_id, k)
 
 
 def parse_split(spec: str) -> dict:
-    """'shape' | 'lovo:P=10' (also C=, endo=, epi=) | 'source' → a dict describing the split."""
+    """'shape' | 'shape:F' (test fraction F of the shapes, 0 < F < 1; 'shape' is F = TEST_FRACTION) |
+    'lovo:P=10' (also C=, endo=, epi=) | 'source' → a dict describing the split."""
     text = str(spec).strip()
     if text == "shape":
         return {"kind": "shape"}
+    if text.startswith("shape:"):
+        try:
+            fraction = float(text[len("shape:"):])
+        except ValueError:
+            fraction = float("nan")
+        if not 0.0 < fraction < 1.0:
+            raise TrainerError(f"split={spec!r}: write shape:F with a test fraction of the shapes 0 < F < 1, "
+                               f"e.g. shape:0.1")
+        return {"kind": "shape", "test_fraction": fraction}
     if text == "source":
         return {"kind": "source"}
     if text.startswith("lovo:"):
@@ -62,8 +72,9 @@ def _case_val_split(train: list, seed: int) -> tuple[list, list]:
 def make_split(keys: list, params: dict, spec: str | dict, seed: int, store_attrs: dict | None = None) -> dict:
     """Split case keys [(shape_id, k)] into {"train", "val", "test"} (sorted lists of keys).
 
-    shape: 30 % of the shapes (seeded) are test; of the rest, 15 % of shapes are validation when
-           there are at least 4, else 10 % of the training cases. No shape is in train and test.
+    shape: 30 % of the shapes (seeded) are test (shape:F: the fraction F, at least one shape); of the
+           rest, 15 % of shapes are validation when there are at least 4, else 10 % of the training
+           cases. No shape is in train and test.
     lovo:  the cases whose parameter equals the value are test; validation is 10 % of the rest.
     source: the store's root attribute `splits` = {"train": [shape ids], "test": [...], "val": [...]}.
     `params` maps a key to its 4 parameters (PARAM_NAMES order)."""
@@ -77,7 +88,7 @@ def make_split(keys: list, params: dict, spec: str | dict, seed: int, store_attr
             raise TrainerError(f"`split` shape needs ≥ 2 shapes with done cases, the store has {len(shapes)}")
         rng = np.random.default_rng([seed, 0])
         order = [shapes[i] for i in rng.permutation(len(shapes))]
-        n_test = min(len(shapes) - 1, max(1, int(round(TEST_FRACTION * len(shapes)))))
+        n_test = min(len(shapes) - 1, max(1, int(round(s.get("test_fraction", TEST_FRACTION) * len(shapes)))))
         test_shapes = set(order[:n_test])
         rest = order[n_test:]
         val_shapes = set(rest[:max(1, int(round(VAL_SHAPE_FRACTION * len(rest))))]) if len(rest) >= 4 else set()
