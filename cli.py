@@ -244,7 +244,9 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
                 first_shape: int = typer.Option(None, "--first-shape", help="First held-out shape id (default: the one "
                                                 "after the run's last); the same for runs trained on different stores."),
                 seed: int = typer.Option(None, "--seed", help="Shape-model seed of the held-out shapes (default: the "
-                                         "run's store's); another seed's shapes are all unseen, from --first-shape 0.")):
+                                         "run's store's); another seed's shapes are all unseen, from --first-shape 0."),
+                shape_model: int = typer.Option(None, "--shape-model", help="Shape model version of the held-out "
+                                                "shapes (default: the run's store's); another version's are all unseen.")):
     """The speed–accuracy trade: held-out ED meshes unloaded by FE (fast, accurate), the network, and the
     network's guess refined by 1, 2, 4 inverse updates or to tolerance, each against the converged
     solution (the reference preset). Writes trade.md, trade.png and trade.json (read by --method auto)."""
@@ -255,7 +257,7 @@ def bench_trade(run: list[Path] = typer.Option(..., "--run", help="Run directory
     out = out or run[0] / "trade"
     with failures():
         spec = TradeSpec(tuple(str(r) for r in run), shapes, cases, user_nodes, network_only=network_only,
-                         first_shape=first_shape, seed=seed).validate()
+                         first_shape=first_shape, seed=seed, shape_model=shape_model).validate()
         result = run_trade(spec, out / "solves", progress=typer.echo)
     print_trade(result, write_report(result, out, report_header("trade", "", threads)))
 

@@ -45,6 +45,8 @@ class TradeSpec:
     its ensemble) alone, no FE or hybrid methods; first_shape: the first held-out shape id (None: the
     one after the run's last; runs trained on different stores are then scored on the same shapes); seed:
     the held-out shapes' shape-model seed (None: the run's store's; another seed holds no training shape);
+    shape_model: their shape model's version (None: the run's store's; another version, like another seed,
+    holds no training shape);
     adaptive_tolerance_mm: the target of the adaptive FE row (`unload --fidelity adaptive --tolerance-mm`)."""
 
     runs: tuple[str, ...]
@@ -56,6 +58,7 @@ class TradeSpec:
     network_only: bool = False
     first_shape: int | None = None
     seed: int | None = None  # the held-out shapes' seed (None: the run's store's)
+    shape_model: int | None = None  # the held-out shapes' shape model version (None: the run's store's)
     adaptive_tolerance_mm: float = 0.05
 
     def validate(self) -> "TradeSpec":
@@ -69,6 +72,10 @@ class TradeSpec:
             raise ValueError(f"`user_nodes` must be 0 or 150–5000, got {self.user_nodes}")
         if self.first_shape is not None and self.first_shape < 0:
             raise ValueError(f"`first_shape` must be ≥ 0, got {self.first_shape}")
+        if self.shape_model is not None:
+            from solver.shape_model import check_version
+
+            check_version(self.shape_model)
         if not (math.isfinite(self.adaptive_tolerance_mm) and self.adaptive_tolerance_mm > 0):
             raise ValueError(f"`adaptive_tolerance_mm` must be a number > 0, got {self.adaptive_tolerance_mm}")
         if any(k < 1 for k in self.hybrid_updates):
@@ -84,12 +91,13 @@ class HeldOutCase:
     resolution: str  # "training" | "user"
     name: str  # "mid" | "corner …"
     params: CaseParameters
+    version: int = 2  # the shape model's
 
     @property
     def key(self) -> str:
         p = self.params
-        return (f"s{self.shape_id}_seed{self.seed}_n{self.target_nodes}_P{p.pressure_mmhg:g}_C{p.stiffness_pa:g}"
-                f"_e{p.helix_endo_deg:g}_p{p.helix_epi_deg:g}")
+        return (f"s{self.shape_id}_seed{self.seed}_v{self.version}_n{self.target_nodes}_P{p.pressure_mmhg:g}"
+                f"_C{p.stiffness_pa:g}_e{p.helix_endo_deg:g}_p{p.helix_epi_deg:g}")
 
 
 def box_cases(grid: dict, n: int) -> list[tuple[str, CaseParameters]]:
@@ -122,7 +130,9 @@ def held_out_cases(fingerprint: dict, spec: TradeSpec) -> list[HeldOutCase]:
     first = max(max(seen) + 1, int(grid.get("shapes", 0)))
     store_seed = int(fingerprint.get("seed") or 0)
     seed = store_seed if spec.seed is None else int(spec.seed)
-    if seed != store_seed:  # no shape of another seed is a training shape
+    store_version = int(fingerprint.get("shape_model_version") or 1)
+    version = store_version if spec.shape_model is None else int(spec.shape_model)
+    if seed != store_seed or version != store_version:  # no shape of another seed or model is a training shape
         first = 0 if spec.first_shape is None else spec.first_shape
     elif spec.first_shape is not None:
         if spec.first_shape < first:
@@ -131,7 +141,7 @@ def held_out_cases(fingerprint: dict, spec: TradeSpec) -> list[HeldOutCase]:
         first = spec.first_shape
     nodes = fingerprint.get("mesh_nodes") or int(np.mean(list(fingerprint["shape_nodes"].values())))
     sizes = [("training", int(nodes))] + ([("user", spec.user_nodes)] if spec.user_nodes else [])
-    return [HeldOutCase(first + s, seed, n, res, name, params)
+    return [HeldOutCase(first + s, seed, n, res, name, params, version)
             for s in range(spec.shapes) for res, n in sizes for name, params in box_cases(grid, spec.cases)]
 
 
@@ -280,13 +290,12 @@ def run_trade(spec: TradeSpec, cache_dir: Path | None = None, progress=None) -> 
     fingerprint = predictors["gnn"].state.get("fingerprint", {})
     base = fingerprint_value(fingerprint, "base") or "sliding"
     fibres = fingerprint_value(fingerprint, "fibres")
-    version = int(fingerprint.get("shape_model_version") or 1)  # held-out shapes come from the store's model
     cache = SolveCache(cache_dir)
     rows, meshes = [], {}
     for case in held_out_cases(fingerprint, spec):
         mkey = (case.shape_id, case.target_nodes)
         if mkey not in meshes:
-            meshes[mkey] = mesh_lv(lv_shape(case.shape_id, case.seed, version), case.target_nodes)
+            meshes[mkey] = mesh_lv(lv_shape(case.shape_id, case.seed, case.version), case.target_nodes)
         ed = meshes[mkey]
         ref = reference_answer(case, ed, base, fibres, cache, progress)
         if ref.failed:

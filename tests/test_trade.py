@@ -96,6 +96,13 @@ def test_box_cases_mid_then_hardest_corner():
     other = held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350, "seed": 1},
                            TradeSpec(("r",), shapes=2, cases=1, user_nodes=0, seed=0))
     assert [(c.shape_id, c.seed) for c in other] == [(0, 0), (1, 0)]  # another seed: none of its shapes was trained on
+    assert {c.version for c in other} == {1} and other[0].key.startswith("s0_seed0_v1_n350_")
+    v3 = held_out_cases({"grid": grid, "shape_nodes": {"0": 300}, "mesh_nodes": 350, "seed": 1, "shape_model_version": 2},
+                        TradeSpec(("r",), shapes=1, cases=1, user_nodes=0, shape_model=3))
+    assert [(c.shape_id, c.seed, c.version) for c in v3] == [(0, 1, 3)]  # another model: its shapes are all unseen
+    assert v3[0].key != replace(v3[0], version=2).key  # a cached reference of a v3 shape is not a v2 shape's
+    with pytest.raises(ValueError, match="shape model version"):
+        TradeSpec(("r",), shape_model=7).validate()
 
 
 def _table(rows):
