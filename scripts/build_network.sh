@@ -15,11 +15,11 @@ WORK=${WORK:-build/network}
 CPUS=${CPUS:-2}
 REF_SHAPES=${REF_SHAPES:-0}
 if [ "$REF_SHAPES" -gt 0 ]; then
-    STEPS=${STEPS:-"fast accurate more reference pretrain finetune broaden grow widen refine score package"}
+    STEPS=${STEPS:-"fast accurate more reference pretrain finetune broaden grow widen deepen tails refine score package"}
     SHIP=${SHIP:-refined}
 else
-    STEPS=${STEPS:-"fast accurate more pretrain finetune broaden grow widen score package"}
-    SHIP=${SHIP:-widened}   # the run scored and packaged (broadened, finetuned, pretrained: earlier stages)
+    STEPS=${STEPS:-"fast accurate more pretrain finetune broaden grow widen deepen tails score package"}
+    SHIP=${SHIP:-tailed}   # the run scored and packaged (deepened, widened, broadened, …: earlier stages)
 fi
 mkdir -p "$WORK"
 
@@ -30,18 +30,28 @@ mkdir -p "$WORK"
 # at the helix box's centre. Held out: seed 0 from shape 20 on.
 # Broadening: MORE_SHAPES shapes of seed 2, `accurate` labels on the box's corners and centre pressure
 # (P 4, 9, 14 × C 50, 300 × the four helix corners: 24 cases a shape, ~1.4 s a pair), then the same store
-# grown to WIDE_SHAPES shapes for a last, gentler fine-tuning.
+# grown to WIDE_SHAPES shapes for a gentler fine-tuning, and to DEEP_SHAPES for another that tests on a tenth
+# of its shapes only (the network's own tests are other seeds' shapes). Tails: TAIL_SHAPES shapes of shape
+# model version 3 (the same modes drawn uniformly within ±2 SD), seed 3, on the broadening grid, last.
 ACC_SHAPES=${ACC_SHAPES:-20}
 MORE_SHAPES=${MORE_SHAPES:-64}
 WIDE_SHAPES=${WIDE_SHAPES:-106}
+DEEP_SHAPES=${DEEP_SHAPES:-DEEP_PLACEHOLDER}
+TAIL_SHAPES=${TAIL_SHAPES:-64}
 GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
 REF_GRID=(--pressures 4,9,14 --stiffness 50,120,300 --endo 65 --epi=-65 --nodes 350 --num-cpus "$CPUS")
 
 want() { [[ " $STEPS " == *" $1 "* ]]; }
-# train RUN STORE EPOCHS [LR PARENT]: the recommended network on STORE, from PARENT's weights when given
+# train RUN STORE EPOCHS [LR PARENT SPLIT]: the recommended network on STORE, from PARENT's weights when given
 train() {
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/$2" --run-dir "$WORK/$1" \
-        --epochs "$3" ${4:+--lr "$4"} ${5:+--init-from "$WORK/$5"}
+        --epochs "$3" ${4:+--lr "$4"} ${5:+--init-from "$WORK/$5"} ${6:+--split "$6"}
+}
+# copy_store FROM TO: a copy of a label store to grow, made whole or not at all (an interrupted copy starts again)
+copy_store() {
+    if [ ! -d "$WORK/$2" ]; then
+        rm -rf "$WORK/$2.copying" && cp -r "$WORK/$1" "$WORK/$2.copying" && mv "$WORK/$2.copying" "$WORK/$2"
+    fi
 }
 
 if want fast; then
@@ -53,6 +63,7 @@ if want accurate; then
     $HEARTCTL generate --shapes "$ACC_SHAPES" --seed 0 "${GRID[@]}" --fidelity accurate --store "$WORK/accurate.zarr"
 fi
 MORE_GRID=(--seed 2 --pressures 4,9,14 --stiffness 50,300 --endo 60,70 --epi=-60,-70 --nodes 350 --num-cpus "$CPUS")
+TAIL_GRID=(--seed 3 "${MORE_GRID[@]:2}")
 if want more; then
     echo "== accurate labels for broadening: $MORE_SHAPES shapes (seed 2) × 3 P × 2 C × 2 × 2 helix"
     $HEARTCTL generate --shapes "$MORE_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/more.zarr"
@@ -75,25 +86,35 @@ if want broaden; then
 fi
 if want grow; then
     echo "== a copy of the broadening store grown to $WIDE_SHAPES shapes"
-    if [ ! -d "$WORK/wide.zarr" ]; then  # copied whole or not at all: an interrupted copy is started again
-        rm -rf "$WORK/wide.zarr.copying" && cp -r "$WORK/more.zarr" "$WORK/wide.zarr.copying"
-        mv "$WORK/wide.zarr.copying" "$WORK/wide.zarr"
-    fi
+    copy_store more.zarr wide.zarr
     $HEARTCTL generate --shapes "$WIDE_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/wide.zarr"
 fi
 if want widen; then
     echo "== fine-tuning on the grown store"
     train widened wide.zarr 12 2e-4 broadened
 fi
+if want deepen; then
+    echo "== the store grown again, to $DEEP_SHAPES shapes, and fine-tuning on nine tenths of them"
+    copy_store wide.zarr deep.zarr
+    $HEARTCTL generate --shapes "$DEEP_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/deep.zarr"
+    train deepened deep.zarr DEEP_EPOCHS DEEP_LR widened shape:0.1
+fi
+if want tails; then
+    echo "== accurate labels of $TAIL_SHAPES shapes of shape model 3 (seed 3), and fine-tuning on them"
+    $HEARTCTL generate --shapes "$TAIL_SHAPES" --shape-model 3 "${TAIL_GRID[@]}" --fidelity accurate \
+        --store "$WORK/tails.zarr"
+    train tailed tails.zarr TAIL_EPOCHS TAIL_LR deepened shape:0.1
+fi
 if want refine; then
     echo "== fine-tuning on the reference labels"
-    train refined reference.zarr 100 1e-4 widened
+    train refined reference.zarr 100 1e-4 tailed
 fi
 if want score; then
     echo "== scoring: the label store's test split, held-out shapes 20– (seed 0) against reference, the atlas LV"
     case "$SHIP" in  # its test split: shapes of its last label store it never trained on
         pretrained) last=fast.zarr ;; finetuned) last=accurate.zarr ;; broadened) last=more.zarr ;;
-        widened) last=wide.zarr ;; refined) last=reference.zarr ;;
+        widened) last=wide.zarr ;; deepened) last=deep.zarr ;; tailed) last=tails.zarr ;;
+        refined) last=reference.zarr ;;
     esac
     $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/$last"
     # the network on 6 held-out shapes at ~330 and ~700 nodes; then every method on 3 of them at ~330 nodes

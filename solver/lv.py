@@ -240,9 +240,9 @@ def inverse_solve(ed_mesh: TetMesh, params: CaseParameters, fidelity: Fidelity |
 
     `max_updates` k: stop after at most k fixed-point updates and return that reference with its
     mismatch, met tolerance or not (a fixed budget asked for by the caller: `bench trade`'s
-    "network guess + k updates"); without it, not reaching tol_mm in the preset's updates raises, and so
-    does an inverse that stalls or diverges first (`inverse_failure.stalled`: 10 updates without a mismatch below 0.9 ×
-    the best before them).
+    "network guess + k updates"); without it, not reaching tol_mm in the preset's updates raises
+    InverseError, and so does an inverse that stalls or diverges first (`inverse_failure.stalled`: 10
+    updates without a mismatch below 0.9 × the best before them) or whose update folds the reference.
 
     `rough_first_state` (a guess whose error is tenths of a mm, such as a network's): the first forward
     solve on the guessed reference stops at |R|∞ ≤ ROUGH_FIRST_STATE_FORCE · P · (mean endo facet area)
