@@ -91,7 +91,7 @@ class HeldOutCase:
     resolution: str  # "training" | "user"
     name: str  # "mid" | "corner …"
     params: CaseParameters
-    version: int = 2  # the shape model's
+    version: int  # the shape model's
 
     @property
     def key(self) -> str:
