@@ -111,10 +111,7 @@ def run_case(mesh, params, fidelity: str, base: str = "sliding", retry: bool = T
         except Exception as exc:  # e.g. a linear solver's "factor is exactly singular": this case fails, the chain goes on
             line = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
             reasons.append(f"{type(exc).__name__}: {line}".strip(" :"))
-    wall = time.perf_counter() - t0
-    out = {"ok": pair is not None, "attempts": attempts, "host": socket.gethostname(), "pid": os.getpid(), "node": ray_node_id(),
-           "started_at": started_at, "finished_at": time.time(), "task_wall_s": wall,
-           "unloaded": None, "loaded": None, "stats": {}, "reason": None}
+    out = _result(pair is not None, attempts, started_at, time.perf_counter() - t0)
     if pair is None:
         out["reason"] = reasons[-1]
         out["first_reason"] = reasons[0]
@@ -165,12 +162,16 @@ def run_chain(mesh, params_list, fidelity: str, base: str = "sliding", fibres: s
     return results
 
 
+def _result(ok: bool, attempts: int, started_at: float, wall_s: float) -> dict:
+    """The fields of run_case's result that every case has: where and when it ran, no answer yet."""
+    return {"ok": ok, "attempts": attempts, "host": socket.gethostname(), "pid": os.getpid(), "node": ray_node_id(),
+            "started_at": started_at, "finished_at": time.time(), "task_wall_s": wall_s,
+            "unloaded": None, "loaded": None, "stats": {}, "reason": None}
+
+
 def _not_attempted(reason: str) -> dict:
     """run_case's result for a case left unsolved on purpose, with its reason."""
-    now = time.time()
-    return {"ok": False, "attempts": 0, "host": socket.gethostname(), "pid": os.getpid(), "node": ray_node_id(),
-            "started_at": now, "finished_at": now, "task_wall_s": 0.0, "unloaded": None, "loaded": None,
-            "stats": {}, "reason": reason, "first_reason": reason, "warm_start": False}
+    return {**_result(False, 0, time.time(), 0.0), "reason": reason, "first_reason": reason, "warm_start": False}
 
 
 def warm_up(seconds: float = 0.2) -> int:

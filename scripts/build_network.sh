@@ -48,11 +48,13 @@ train() {
     $HEARTCTL train --no-ray --device cpu --config recommended --store "$WORK/$2" --run-dir "$WORK/$1" \
         --epochs "$3" ${4:+--lr "$4"} ${5:+--init-from "$WORK/$5"} ${6:+--split "$6"}
 }
-# copy_store FROM TO: a copy of a label store to grow, made whole or not at all (an interrupted copy starts again)
-copy_store() {
+# grown_copy FROM TO SHAPES: a copy of the broadening-grid store FROM (made whole or not at all: an
+# interrupted copy starts again) grown to SHAPES shapes; rerunning resumes the growth
+grown_copy() {
     if [ ! -d "$WORK/$2" ]; then
         rm -rf "$WORK/$2.copying" && cp -r "$WORK/$1" "$WORK/$2.copying" && mv "$WORK/$2.copying" "$WORK/$2"
     fi
+    $HEARTCTL generate --shapes "$3" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/$2"
 }
 
 if want fast; then
@@ -87,8 +89,7 @@ if want broaden; then
 fi
 if want grow; then
     echo "== a copy of the broadening store grown to $WIDE_SHAPES shapes"
-    copy_store more.zarr wide.zarr
-    $HEARTCTL generate --shapes "$WIDE_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/wide.zarr"
+    grown_copy more.zarr wide.zarr "$WIDE_SHAPES"
 fi
 if want widen; then
     echo "== fine-tuning on the grown store"
@@ -96,8 +97,7 @@ if want widen; then
 fi
 if want deepen; then
     echo "== the store grown again, to $DEEP_SHAPES shapes, and fine-tuning on nine tenths of them"
-    copy_store wide.zarr deep.zarr
-    $HEARTCTL generate --shapes "$DEEP_SHAPES" "${MORE_GRID[@]}" --fidelity accurate --store "$WORK/deep.zarr"
+    grown_copy wide.zarr deep.zarr "$DEEP_SHAPES"
     train deepened deep.zarr 12 2e-4 widened shape:0.1
 fi
 if want tails; then

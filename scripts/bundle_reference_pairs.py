@@ -4,7 +4,8 @@ family with their `reference` unloaded geometry, which `make test` scores the sh
     .venv/bin/python scripts/bundle_reference_pairs.py RUN_DIR [CACHE_DIR]
 
 The cases are `bench trade --seed 0 --shape-model 2 --first-shape 20`'s: shapes 20, 21 and 22 of seed 0 of
-shape model version 2 at the run's mesh size, at the mid of its parameter box and its two hardest corners. The reference solves are kept in CACHE_DIR
+shape model version 2 at the run's mesh size, at the mid of its parameter box and its two hardest corners.
+The reference solves are kept in CACHE_DIR
 (default build/network/trade/solves, where `bench trade --out build/network/trade` keeps them too).
 """
 from __future__ import annotations

@@ -162,7 +162,8 @@ class TrainOptions:
     sr = typer.Option(1.0, "--sr", help="Supervision ratio: fraction of training cases with labels (e.g. 0.03).")
     labelled_share = typer.Option(0.25, "--labelled-share",
                                   help="SR < 1: share of each batch drawn from the labelled cases.")
-    split = typer.Option("shape", "--split", help="shape (70/30 of shapes; shape:0.1 tests on 10 %) | lovo:P=10 (C=, endo=, epi=) | source.")
+    split = typer.Option("shape", "--split", help="shape (70/30 of shapes; shape:0.1 tests on 10 %) | "
+                                                  "lovo:P=10 (C=, endo=, epi=) | source.")
     train_fraction = typer.Option(1.0, "--train-fraction",
                                   help="Train on this fraction of the training shapes (seeded; "
                                   "validation and test unchanged).")
