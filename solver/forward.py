@@ -24,6 +24,14 @@ BACKTRACK_STEPS = (1.0, 0.5, 0.25)  # fractions of a full Newton step tried in t
 # factorisations, 1e5 426, 1e7 351, 1e8 327; at 1e9 one solve failed (its load steps collapsed), so
 # 1e7 keeps a 100× margin
 INTERMEDIATE_LOOSENESS = 1e7
+# a correction at full load from a given state (a guessed reference, an inverse update's re-solve) goes
+# past the preset's Newton budget, up to this many times it, while every full step at least halves
+# |R|∞. From a rough guess on a soft wall, Newton descends the exponential law's stiff range linearly,
+# |R|∞ falling ~e× per iteration (a network's guess at P 14 mmHg, C 50 Pa, 689 nodes: 2e10 → 2e5 in the
+# budget's 12 iterations, converged in 5 more); giving up there restarts from zero strain, which costs
+# more than the whole correction (docs/benchmarks.md)
+PATIENT_BUDGET_FACTOR = 3
+PATIENT_CONTRACTION = 0.5
 
 
 class SolveError(RuntimeError):
@@ -57,9 +65,12 @@ class SolveStats:
 
 
 def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsolve: SparseSolver,
-            stats: SolveStats, force_scale: float, looseness: float = 1.0, reuse_factor: bool = False):
+            stats: SolveStats, force_scale: float, looseness: float = 1.0, reuse_factor: bool = False,
+            patient: bool = False):
     """Newton iterations at a fixed load. With `reuse_factor`, reuse the last factorisation while it still
-    contracts the residual fast (modified Newton) and refactorising otherwise.
+    contracts the residual fast (modified Newton) and refactorising otherwise. `patient`: past the
+    preset's iteration budget, go on while each full step at least halves |R|∞ (up to
+    PATIENT_BUDGET_FACTOR × the budget).
 
     Converged when |R|∞ ≤ rtol·force_scale·looseness, or when a full-Newton update is below
     increment_tol_mm·looseness (the residual is then checked once more). Returns (z, ok, reason)."""
@@ -68,9 +79,9 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
                      r_tol=fid.residual_rtol * force_scale * looseness, du_tol=fid.increment_tol_mm * looseness,
                      # a held factorisation serves only a tangent of this problem's size (a workspace
                      # holds one solver for problems of several supports)
-                     need_tangent=not (reuse_factor and linsolve.size == problem.free.size))
+                     need_tangent=not (reuse_factor and linsolve.size == problem.free.size), patient=patient)
     # a pass that only refreshes a tangent or steps back solves nothing: at most two passes per solve
-    for _ in range(2 * int(np.ceil(fid.max_newton / MODIFIED_STEP_WEIGHT)) + 2):
+    for _ in range(2 * int(np.ceil(run.max_budget / MODIFIED_STEP_WEIGHT)) + 2):
         R, K, min_J = run.residual()
         verdict = run.verdict(R, min_J)
         if verdict == _AGAIN:
@@ -83,7 +94,7 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
         if outcome is not None:
             return (run.z, *outcome)
     linsolve.forget()
-    return run.z, False, f"no convergence in {fid.max_newton} Newton iterations (|R|∞ {run.rnorm:.3g})"
+    return run.z, False, f"no convergence in {stats.newton_iterations_here} Newton iterations (|R|∞ {run.rnorm:.3g})"
 
 
 _AGAIN, _OUT_OF_BUDGET = "again", "out of budget"  # _NewtonRun.verdict's answers that are not an outcome
@@ -106,6 +117,7 @@ class _NewtonRun:
     r_tol: float
     du_tol: float
     need_tangent: bool
+    patient: bool = False
     fresh: bool = False
     z_before: np.ndarray | None = None
     known: tuple | None = None  # (R, min det F) already assembled at z, by the backtracking
@@ -113,6 +125,18 @@ class _NewtonRun:
     r_prev: float | None = None
     rnorm: float = float("nan")
     budget_used: float = 0.0
+
+    @property
+    def max_budget(self) -> float:
+        return self.problem.fidelity.max_newton * (PATIENT_BUDGET_FACTOR if self.patient else 1)
+
+    def out_of_budget(self) -> bool:
+        """The preset's budget used up, or, when patient, the last full step cut |R|∞ by less than
+        PATIENT_CONTRACTION or the extended budget is used up too."""
+        if self.budget_used < self.problem.fidelity.max_newton:
+            return False
+        contracting = self.fresh and self.r_prev is not None and self.rnorm <= PATIENT_CONTRACTION * self.r_prev
+        return not (self.patient and contracting and self.budget_used < self.max_budget)
 
     def residual(self):
         """(R, K or None, min det F) at z: the backtracking's when it assembled them and no tangent is
@@ -155,7 +179,7 @@ class _NewtonRun:
             # the old tangent contracts too slowly here (but it did contract): refactorise at this state
             self.need_tangent = True
             return _AGAIN
-        if self.budget_used >= self.problem.fidelity.max_newton:
+        if self.out_of_budget():
             return _OUT_OF_BUDGET
         return None
 
@@ -272,7 +296,8 @@ def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None
     z_prev, load_prev = None, None
     if start_load >= 1.0:  # already at full load: correct the given state only
         stats.newton_iterations_here = 0
-        z, ok, reason = _newton(problem, z, pressure_pa, linsolve, stats, force_scale, looseness, reuse_factor)
+        z, ok, reason = _newton(problem, z, pressure_pa, linsolve, stats, force_scale, looseness, reuse_factor,
+                                patient=True)
         stats.wall_s = time.perf_counter() - t_start
         if not ok:
             raise SolveError(f"Newton correction at full load failed ({reason})")

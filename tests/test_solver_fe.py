@@ -127,6 +127,28 @@ def test_modified_newton_budget_counts_full_steps_not_refreshes(coarse_lv):
     assert len(stats.residual_history) > stats.newton_iterations + 1  # refresh / step-back passes happened
 
 
+def test_a_full_load_correction_goes_past_the_budget_while_it_halves_the_residual():
+    """From a state past equilibrium in the law's stiff range (the converged displacement × 1.3 at the
+    soft corner), Newton's |R|∞ falls ~3× an iteration: 4 iterations do not converge it, but the
+    full-load correction of `inflate`, patient, goes on to the converged state (8 iterations, the
+    budget's 4 × PATIENT_BUDGET_FACTOR is the most)."""
+    from solver.forward import SolveStats, _newton
+    from solver.linear import SparseSolver
+
+    lv = mesh_lv(lv_shape(0, 0, 2), 120)
+    params = CaseParameters(14.0, 50.0, 70.0, -70.0)
+    problem = lv_problem(lv, params, dataclasses.replace(get_fidelity("fast"), max_newton=4))
+    converged, _ = inflate(problem, params.pressure_pa)
+    past = 1.3 * converged
+    scale = force_scale_of(problem, params.pressure_pa)
+    with SparseSolver() as linsolve:
+        _, ok, reason = _newton(problem, past, params.pressure_pa, linsolve, SolveStats(), scale)
+    assert not ok and reason.startswith("no convergence in 4 Newton iterations")
+    z, stats = inflate(problem, params.pressure_pa, z0=past, start_load=1.0)
+    assert 4 < stats.newton_iterations <= 12
+    assert np.abs(problem.split(z)[0] - problem.split(converged)[0]).max() <= 1e-6
+
+
 def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
     """From zero strain the linearised step at a quarter of 8 mmHg overshoots into the Fung law's
     stiff range (|R| grows ~9×); the backtracking keeps half of it, where |R| falls."""
