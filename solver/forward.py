@@ -25,13 +25,15 @@ BACKTRACK_STEPS = (1.0, 0.5, 0.25)  # fractions of a full Newton step tried in t
 # 1e7 keeps a 100× margin
 INTERMEDIATE_LOOSENESS = 1e7
 # a correction at full load from a given state (a guessed reference, an inverse update's re-solve) goes
-# past the preset's Newton budget, up to this many times it, while every full step at least halves
-# |R|∞. From a rough guess on a soft wall, Newton descends the exponential law's stiff range linearly,
-# |R|∞ falling ~e× per iteration (a network's guess at P 14 mmHg, C 50 Pa, 689 nodes: 2e10 → 2e5 in the
-# budget's 12 iterations, converged in 5 more); giving up there restarts from zero strain, which costs
-# more than the whole correction (docs/benchmarks.md)
+# past the preset's Newton budget, up to PATIENT_BUDGET_FACTOR times it, while |R|∞ at least halves an
+# iteration on average over the last PATIENT_WINDOW iterations (one backtracked step is no reason to
+# stop). From a rough guess on a soft wall, Newton descends the exponential law's stiff range linearly,
+# |R|∞ falling ~e× an iteration (a network's guess at P 14 mmHg, C 50 Pa, 329 nodes: 5e13 → 3e2 in 24
+# iterations); giving up at the budget restarts from zero strain, which costs more than the whole
+# correction (docs/benchmarks.md)
 PATIENT_BUDGET_FACTOR = 3
 PATIENT_CONTRACTION = 0.5
+PATIENT_WINDOW = 3
 
 
 class SolveError(RuntimeError):
@@ -69,7 +71,7 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
             patient: bool = False):
     """Newton iterations at a fixed load. With `reuse_factor`, reuse the last factorisation while it still
     contracts the residual fast (modified Newton) and refactorising otherwise. `patient`: past the
-    preset's iteration budget, go on while each full step at least halves |R|∞ (up to
+    preset's iteration budget, go on while |R|∞ halves an iteration over the last PATIENT_WINDOW (up to
     PATIENT_BUDGET_FACTOR × the budget).
 
     Converged when |R|∞ ≤ rtol·force_scale·looseness, or when a full-Newton update is below
@@ -125,17 +127,19 @@ class _NewtonRun:
     r_prev: float | None = None
     rnorm: float = float("nan")
     budget_used: float = 0.0
+    history: list = field(default_factory=list)  # |R|∞ at each assembled state
 
     @property
     def max_budget(self) -> float:
         return self.problem.fidelity.max_newton * (PATIENT_BUDGET_FACTOR if self.patient else 1)
 
     def out_of_budget(self) -> bool:
-        """The preset's budget used up, or, when patient, the last full step cut |R|∞ by less than
-        PATIENT_CONTRACTION or the extended budget is used up too."""
+        """The preset's budget used up, or, when patient, the last PATIENT_WINDOW iterations cut |R|∞ by
+        less than PATIENT_CONTRACTION an iteration or the extended budget is used up too."""
         if self.budget_used < self.problem.fidelity.max_newton:
             return False
-        contracting = self.fresh and self.r_prev is not None and self.rnorm <= PATIENT_CONTRACTION * self.r_prev
+        h = self.history
+        contracting = len(h) > PATIENT_WINDOW and h[-1] <= PATIENT_CONTRACTION ** PATIENT_WINDOW * h[-1 - PATIENT_WINDOW]
         return not (self.patient and contracting and self.budget_used < self.max_budget)
 
     def residual(self):
@@ -150,6 +154,7 @@ class _NewtonRun:
         self.known = None
         self.rnorm = float(np.abs(R).max())
         self.stats.residual_history.append(self.rnorm)
+        self.history.append(self.rnorm)
         return R, K, min_J
 
     def verdict(self, R: np.ndarray, min_J: float):
