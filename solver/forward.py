@@ -34,6 +34,13 @@ INTERMEDIATE_LOOSENESS = 1e7
 PATIENT_BUDGET_FACTOR = 3
 PATIENT_CONTRACTION = 0.5
 PATIENT_WINDOW = 3
+# load stepping from zero strain: the first step carries at most this many times the law's C of cavity
+# pressure (the preset's ¼ of the load otherwise). The linearised step's strain grows as P / C, and past
+# ~4 C it lands far up the exponential law's stiff range (NaN or |R| × 1e4, then step cuts): at
+# P 14 mmHg, C 50 Pa (P = 37 C) a first step of 0.107 of the load against ¼ took an `accurate` forward
+# solve on 689 nodes from 8.0 to 3.1 s; over 4 meshes × 5 corners and mid cases, 47.3 → 40.0 s
+# (`accurate`) and 6.0 → 5.6 s (`fast`), no case slower by more than 0.2 s (docs/solver.md)
+FIRST_STEP_PRESSURE_PER_C = 4.0
 
 
 class SolveError(RuntimeError):
@@ -273,6 +280,18 @@ def _predict(problem: MechanicsProblem, z: np.ndarray, z_prev: np.ndarray, load_
     return z + (z - z_prev) * (target - load) / (load - load_prev)
 
 
+def first_load_step(problem: MechanicsProblem, pressure_pa: float) -> float:
+    """The first load step's share of the load from zero strain: the preset's initial_load_step, at most
+    FIRST_STEP_PRESSURE_PER_C · C / P (C the law's stiffness, Pa; P the cavity pressure, Pa), and no
+    less than the preset's min_load_step."""
+    fid = problem.fidelity
+    step = fid.initial_load_step
+    stiffness_pa = getattr(problem.material, "stiffness_pa", None)
+    if stiffness_pa and pressure_pa:
+        step = min(step, FIRST_STEP_PRESSURE_PER_C * stiffness_pa / abs(pressure_pa))
+    return max(step, fid.min_load_step)
+
+
 def force_scale_of(problem: MechanicsProblem, pressure_pa: float) -> float:
     """Typical nodal force (N·1e-6 in mm·Pa units): pressure × mean loaded facet area."""
     x = problem.nodes[problem.pressure_facets]
@@ -295,7 +314,7 @@ def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None
     stats = SolveStats()
     z = problem.zeros() if z0 is None else z0.copy()
     load = start_load
-    step = first_step if first_step is not None else fid.initial_load_step
+    step = first_step if first_step is not None else first_load_step(problem, pressure_pa)
     step = min(step, 1.0 - load)
     force_scale = force_scale_of(problem, pressure_pa)
     z_prev, load_prev = None, None

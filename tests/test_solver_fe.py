@@ -149,6 +149,24 @@ def test_a_full_load_correction_goes_past_the_budget_while_it_halves_the_residua
     assert np.abs(problem.split(z)[0] - problem.split(converged)[0]).max() <= 1e-6
 
 
+def test_the_first_load_step_at_a_soft_high_pressure_corner_carries_at_most_4_c(coarse_lv):
+    """At P 14 mmHg on C 50 Pa (P = 37 C) a quarter of the load overshoots into the stiff range and is
+    cut; a first step of 4 C / P is not, and takes fewer Newton iterations. At the mid of the box
+    (P = 7 C) the preset's quarter stays."""
+    from solver.forward import FIRST_STEP_PRESSURE_PER_C, first_load_step
+
+    soft = CaseParameters(14.0, 50.0, 70.0, -70.0)
+    problem = lv_problem(coarse_lv, soft, "fast")
+    step = first_load_step(problem, soft.pressure_pa)
+    assert step == pytest.approx(FIRST_STEP_PRESSURE_PER_C * 50.0 / soft.pressure_pa)
+    _, quarter = inflate(problem, soft.pressure_pa, first_step=0.25)
+    _, sized = inflate(problem, soft.pressure_pa)
+    assert quarter.step_cuts >= 1 and sized.step_cuts == 0
+    assert sized.newton_iterations < quarter.newton_iterations
+    mid = CaseParameters(9.0, 175.0, 65.0, -65.0)
+    assert first_load_step(lv_problem(coarse_lv, mid, "fast"), mid.pressure_pa) == get_fidelity("fast").initial_load_step
+
+
 def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
     """From zero strain the linearised step at a quarter of 8 mmHg overshoots into the Fung law's
     stiff range (|R| grows ~9×); the backtracking keeps half of it, where |R| falls."""
