@@ -145,8 +145,8 @@ class _NewtonRun:
         less than PATIENT_CONTRACTION an iteration or the extended budget is used up too."""
         if self.budget_used < self.problem.fidelity.max_newton:
             return False
-        h = self.history
-        contracting = len(h) > PATIENT_WINDOW and h[-1] <= PATIENT_CONTRACTION ** PATIENT_WINDOW * h[-1 - PATIENT_WINDOW]
+        h, w = self.history, PATIENT_WINDOW
+        contracting = len(h) > w and h[-1] <= PATIENT_CONTRACTION ** w * h[-1 - w]
         return not (self.patient and contracting and self.budget_used < self.max_budget)
 
     def residual(self):
@@ -314,7 +314,10 @@ def inflate(problem: MechanicsProblem, pressure_pa: float, z0: np.ndarray | None
     stats = SolveStats()
     z = problem.zeros() if z0 is None else z0.copy()
     load = start_load
-    step = first_step if first_step is not None else first_load_step(problem, pressure_pa)
+    if first_step is not None:
+        step = first_step
+    else:
+        step = first_load_step(problem, pressure_pa) if start_load == 0.0 else fid.initial_load_step
     step = min(step, 1.0 - load)
     force_scale = force_scale_of(problem, pressure_pa)
     z_prev, load_prev = None, None
