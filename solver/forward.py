@@ -88,7 +88,8 @@ def _newton(problem: MechanicsProblem, z: np.ndarray, pressure_pa: float, linsol
                      r_tol=fid.residual_rtol * force_scale * looseness, du_tol=fid.increment_tol_mm * looseness,
                      # a held factorisation serves only a tangent of this problem's size (a workspace
                      # holds one solver for problems of several supports)
-                     need_tangent=not (reuse_factor and linsolve.size == problem.free.size), patient=patient)
+                     need_tangent=not (reuse_factor and linsolve.size == problem.free.size), patient=patient,
+                     first=len(stats.residual_history))
     # a pass that only refreshes a tangent or steps back solves nothing: at most two passes per solve
     for _ in range(2 * int(np.ceil(run.max_budget / MODIFIED_STEP_WEIGHT)) + 2):
         R, K, min_J = run.residual()
@@ -134,7 +135,7 @@ class _NewtonRun:
     r_prev: float | None = None
     rnorm: float = float("nan")
     budget_used: float = 0.0
-    history: list = field(default_factory=list)  # |R|∞ at each assembled state
+    first: int = 0  # where this run's residuals start in stats.residual_history
 
     @property
     def max_budget(self) -> float:
@@ -145,7 +146,7 @@ class _NewtonRun:
         less than PATIENT_CONTRACTION an iteration or the extended budget is used up too."""
         if self.budget_used < self.problem.fidelity.max_newton:
             return False
-        h, w = self.history, PATIENT_WINDOW
+        h, w = self.stats.residual_history[self.first:], PATIENT_WINDOW
         contracting = len(h) > w and h[-1] <= PATIENT_CONTRACTION ** w * h[-1 - w]
         return not (self.patient and contracting and self.budget_used < self.max_budget)
 
@@ -161,7 +162,6 @@ class _NewtonRun:
         self.known = None
         self.rnorm = float(np.abs(R).max())
         self.stats.residual_history.append(self.rnorm)
-        self.history.append(self.rnorm)
         return R, K, min_J
 
     def verdict(self, R: np.ndarray, min_J: float):

@@ -164,7 +164,8 @@ def test_the_first_load_step_at_a_soft_high_pressure_corner_carries_at_most_4_c(
     assert quarter.step_cuts >= 1 and sized.step_cuts == 0
     assert sized.newton_iterations < quarter.newton_iterations
     mid = CaseParameters(9.0, 175.0, 65.0, -65.0)
-    assert first_load_step(lv_problem(coarse_lv, mid, "fast"), mid.pressure_pa) == get_fidelity("fast").initial_load_step
+    quarter_step = get_fidelity("fast").initial_load_step
+    assert first_load_step(lv_problem(coarse_lv, mid, "fast"), mid.pressure_pa) == quarter_step
 
 
 def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
