@@ -165,10 +165,11 @@ class SparseSolver:
             ps.set_iparm(2, 2)  # METIS nested-dissection ordering
             ps.set_iparm(10, 13 if mtype == 11 else 8)  # pivot perturbation (saddle-point systems)
             ps.set_iparm(11, 1)  # scaling
-            # weighted matching for the LU of A; the symmetric part's LDLᵀ does without it: on the P2/P1 LV
-            # tangents (12,775 unknowns, one thread) its analysis takes 71 ms against 152 ms and its
-            # factorisation 52 ms against 59 ms, with no pivot perturbed either way and the same residual
-            # (converged and zero-strain states, 8 mmHg to 14 mmHg, `fast` and `accurate`, docs/solver.md)
+            # weighted matching for the LU of A; the symmetric part's LDLᵀ does without it: on a P2/P1 LV
+            # tangent (12,775 unknowns, one thread) the analysis takes 71 ms without it against 152 ms with
+            # it, the factorisation 52 against 59 ms, with no pivot perturbed either way and the same
+            # residual (converged and zero-strain states at 9 and 14 mmHg, `fast` and `accurate`,
+            # docs/solver.md)
             ps.set_iparm(13, 1 if mtype == 11 else 0)
             self._pardiso = ps
         ps = self._pardiso
