@@ -39,7 +39,7 @@ PATIENT_WINDOW = 3
 # ~4 C it lands far up the exponential law's stiff range (NaN or |R| × 1e4, then step cuts): at
 # P 14 mmHg, C 50 Pa (P = 37 C) a first step of 0.107 of the load against ¼ took an `accurate` forward
 # solve on 689 nodes from 8.0 to 3.1 s; over 4 meshes × 5 corners and mid cases, 47.3 → 40.0 s
-# (`accurate`) and 6.0 → 5.6 s (`fast`), no case slower by more than 0.2 s (docs/solver.md)
+# (`accurate`) and 6.0 → 5.6 s (`fast`), no case slower by more than 0.22 s (docs/solver.md)
 FIRST_STEP_PRESSURE_PER_C = 4.0
 
 
