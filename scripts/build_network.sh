@@ -120,11 +120,11 @@ if want score; then
     $HEARTCTL evaluate --run "$WORK/$SHIP" --store "$WORK/$last"
     # the network on 6 held-out shapes at ~330 and ~700 nodes; then every method on 3 of them at ~330 nodes
     # (the table --method auto reads)
-    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --shape-model 2 --first-shape 20 --shapes 6 --cases 3 --user-nodes 750 \
-        --network-only --threads "$CPUS" --out "$WORK/trade750"
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --shape-model 2 --first-shape 20 --shapes 6 --cases 3 \
+        --user-nodes 750 --network-only --threads "$CPUS" --out "$WORK/trade750"
     mkdir -p "$WORK/trade/solves" && cp -n "$WORK/trade750/solves/"* "$WORK/trade/solves/"
-    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --shape-model 2 --first-shape 20 --shapes 3 --cases 3 --user-nodes 0 \
-        --threads "$CPUS" --out "$WORK/trade"
+    $HEARTCTL bench trade --run "$WORK/$SHIP" --seed 0 --shape-model 2 --first-shape 20 --shapes 3 --cases 3 \
+        --user-nodes 0 --threads "$CPUS" --out "$WORK/trade"
     .venv/bin/python scripts/bundle_reference_pairs.py "$WORK/$SHIP" "$WORK/trade/solves"
     if [ -d "${ATLAS:-../shared/fixtures/l2u}" ]; then
         .venv/bin/python scripts/score_atlas.py "${ATLAS:-../shared/fixtures/l2u}" --run "$WORK/$SHIP" \
