@@ -17,6 +17,13 @@ MODIFIED_STEP_WEIGHT = 1.0 / 3.0  # a modified-Newton step's share of the iterat
 # only linearly (≥ 4× per step, else the tangent is refreshed), so it may take several where full Newton
 # takes one; it costs a residual assembly and a back-substitution, not a tangent and a factorisation
 BACKTRACK_STEPS = (1.0, 0.5, 0.25)  # fractions of a full Newton step tried in turn
+# a full step accepted that cut |R|∞ by less than EXTEND_WHEN is tried once more at EXTENDED_STEP × its
+# length, and taken if its residual is lower still and no det F fell below EXTEND_MIN_J_SHARE of the full
+# step's smallest. Far up the exponential law's stiff range Newton's linearisation undershoots: each
+# full step cuts |R|∞ only ~e× (docs/solver.md, "Solves"); the doubled step costs one residual assembly
+EXTEND_WHEN = 0.3
+EXTENDED_STEP = 2.0
+EXTEND_MIN_J_SHARE = 0.5
 # intermediate load steps: |R|∞ ≤ 1e-2 P·area, 1 % of a typical nodal force at full load (the increment
 # test, |Δu| ≤ 1 mm at this looseness, still needs that residual). Their states only start the next
 # step, and the last step is solved to the full tolerance. Over 33 forward solves
@@ -240,25 +247,40 @@ def _backtrack(problem: MechanicsProblem, z: np.ndarray, dz: np.ndarray, pressur
                stats: SolveStats) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """The full Newton step z + α dz with the first α in BACKTRACK_STEPS whose residual |R|∞ does not
     exceed the current one (and det F > 0 everywhere), or else the α with the smallest residual.
+    A full step accepted that cut |R|∞ by less than EXTEND_WHEN is tried at EXTENDED_STEP × dz as well,
+    and that longer step is taken where its residual is lower and det F stays above EXTEND_MIN_J_SHARE
+    of the full step's.
     Returns the new state, the step taken, and the residual and min det F there (reused by Newton).
     One residual assembly (no tangent) per trial, ~¼ of a tangent assembly's cost. From zero strain
     the Fung law's linearised step overshoots far into the stiff range; the line search saves Newton
-    iterations and factorisations at the soft corners of the box."""
+    iterations and factorisations at the soft corners of the box. From a guess far up that range it
+    undershoots (|R|∞ falls ~e× a full step), and the longer step saves them there."""
     best = None
     for alpha in BACKTRACK_STEPS:
-        trial = z.copy()
-        trial[problem.free] += alpha * dz
-        t0 = time.perf_counter()
-        R, _, min_J = problem.assemble(trial, pressure_pa, with_tangent=False)
-        stats.assembly_s += time.perf_counter() - t0
-        r = float(np.abs(R).max()) if min_J > 0 else np.inf
-        r = r if np.isfinite(r) else np.inf
+        r, trial, R, min_J = _trial_step(problem, z, dz, alpha, pressure_pa, stats)
         if best is None or r < best[0]:
             best = (r, trial, alpha, R, min_J)
         if r <= rnorm:
             break
+    if best[2] == 1.0 and EXTEND_WHEN * rnorm < best[0] <= rnorm:
+        longer = _trial_step(problem, z, dz, EXTENDED_STEP, pressure_pa, stats)
+        if longer[0] < best[0] and longer[3] >= EXTEND_MIN_J_SHARE * best[4]:
+            best = (longer[0], longer[1], EXTENDED_STEP, longer[2], longer[3])
     _, trial, alpha, R, min_J = best
     return trial, alpha * dz, R, min_J
+
+
+def _trial_step(problem: MechanicsProblem, z: np.ndarray, dz: np.ndarray, alpha: float, pressure_pa: float,
+                stats: SolveStats) -> tuple[float, np.ndarray, np.ndarray, float]:
+    """(|R|∞, the state z + α dz, R, min det F) at the trial step α; |R|∞ is ∞ where det F ≤ 0 or R is not
+    finite."""
+    trial = z.copy()
+    trial[problem.free] += alpha * dz
+    t0 = time.perf_counter()
+    R, _, min_J = problem.assemble(trial, pressure_pa, with_tangent=False)
+    stats.assembly_s += time.perf_counter() - t0
+    r = float(np.abs(R).max()) if min_J > 0 else np.inf
+    return (r if np.isfinite(r) else np.inf), trial, R, min_J
 
 
 def _predict(problem: MechanicsProblem, z: np.ndarray, z_prev: np.ndarray, load_prev: float, load: float,

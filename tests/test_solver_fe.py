@@ -191,6 +191,37 @@ def test_backtracking_halves_the_overshooting_first_step(coarse_lv):
     assert min_J > 0 and np.abs(R_new).max() <= r0
 
 
+def test_a_full_step_that_undershoots_in_the_stiff_range_is_doubled(coarse_lv, monkeypatch):
+    """From a state far up the stiff range (the converged displacement × 1.5) a full Newton step cuts
+    |R|∞ only ~3×; the doubled step cuts it further and is taken. The correction then needs fewer
+    Newton iterations than with full steps alone, and ends at the same state."""
+    import solver.forward as forward
+    from solver.linear import SparseSolver
+
+    params = CaseParameters(8.0, 150.0, 60.0, -60.0)
+    problem = lv_problem(coarse_lv, params, "fast")
+    pressure = params.pressure_pa
+    converged, _ = inflate(problem, pressure)
+    z = 1.5 * converged
+    R, K, _ = problem.assemble(z, pressure)
+    with SparseSolver() as linsolve:
+        dz = linsolve.solve(K, -R)
+    r0 = np.abs(R).max()
+    full = z.copy()
+    full[problem.free] += dz
+    r_full = np.abs(problem.assemble(full, pressure, with_tangent=False)[0]).max()
+    assert forward.EXTEND_WHEN * r0 < r_full < r0
+    z_new, step, R_new, min_J = forward._backtrack(problem, z, dz, pressure, r0, forward.SolveStats())
+    np.testing.assert_allclose(step, forward.EXTENDED_STEP * dz)
+    assert min_J > 0 and np.abs(R_new).max() < r_full
+    doubled, with_longer = inflate(problem, pressure, z0=z, start_load=1.0)
+    monkeypatch.setattr(forward, "EXTENDED_STEP", 1.0)
+    plain, full_steps = inflate(problem, pressure, z0=z, start_load=1.0)
+    assert with_longer.newton_iterations < full_steps.newton_iterations
+    u = problem.split(doubled)[0]
+    assert np.abs(u - problem.split(plain)[0]).max() < 1e-6 * np.abs(u).max()
+
+
 @pytest.mark.parametrize("params", [CaseParameters(14.0, 50.0, 60.0, -60.0), CaseParameters(8.0, 150.0, 60.0, -60.0)])
 def test_inverse_updates_never_restart_from_zero_load(coarse_lv, params, monkeypatch):
     """Only the first solve of an inverse steps the load from zero; each update re-solves at full
