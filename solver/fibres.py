@@ -34,19 +34,25 @@ def _laplace_dofs(mesh: TetMesh, order: int):
     endo- and epicardial triangles (vertices, and edge midpoints for P2) carry the boundary values."""
     dofmap = build_dofmap(mesh.nodes, mesh.tets, order)
     quad = cell_quadrature(mesh.nodes, mesh.tets, order, max(2 * order - 2, 1))
-    ke = np.einsum("eqaI,eqbI,eq->eab", quad.grads, quad.grads, np.abs(quad.dV))
-    nb = dofmap.cell_dofs.shape[1]
-    rows = np.repeat(dofmap.cell_dofs, nb, axis=1).ravel()
-    cols = np.tile(dofmap.cell_dofs, (1, nb)).ravel()
-    K = sp.csr_matrix((ke.ravel(), (rows, cols)), shape=(dofmap.n_dofs,) * 2)
+    ne, nq, nb, _ = quad.grads.shape
+    by_dof = np.ascontiguousarray(quad.grads.transpose(0, 2, 1, 3)).reshape(ne, nb, nq * 3)  # [e, a, (q I)]
+    weighted = by_dof * np.repeat(np.abs(quad.dV), 3, axis=1)[:, None, :]
+    ke = weighted @ np.swapaxes(by_dof, 1, 2)  # Σ_q dV ∇φ_a · ∇φ_b
     phi = np.full(dofmap.n_dofs, np.nan)
     for value, facets in ((0.0, mesh.endo), (1.0, mesh.epi)):
         phi[np.unique(facet_dofs(dofmap, facets))] = value
-    fixed = ~np.isnan(phi)
-    free = ~fixed
-    rhs = -K[free][:, fixed] @ phi[fixed]
+    free = np.isnan(phi)
+    unknown = np.cumsum(free) - 1  # a free dof's row in the reduced system
+    rows = np.repeat(dofmap.cell_dofs, nb, axis=1).ravel()
+    cols = np.tile(dofmap.cell_dofs, (1, nb)).ravel()
+    values = ke.ravel()
+    inner = free[rows] & free[cols]
+    n_free = int(free.sum())
+    K = sp.csr_matrix((values[inner], (unknown[rows[inner]], unknown[cols[inner]])), shape=(n_free, n_free))
+    coupling = free[rows] & ~free[cols]  # a free row's entries on the surfaces' known values
+    rhs = -np.bincount(unknown[rows[coupling]], weights=values[coupling] * phi[cols[coupling]], minlength=n_free)
     with SparseSolver() as linsolve:  # PARDISO where installed: SuperLU's fill grows fast on P2 in 3D
-        phi[free] = linsolve.solve(K[free][:, free].tocsr(), rhs)
+        phi[free] = linsolve.solve(K, rhs)
     return dofmap, phi
 
 
@@ -128,7 +134,7 @@ def _quadratic_wall_directions(mesh: TetMesh, lam: np.ndarray):
     _, g = tet_geometry(mesh.nodes, mesh.tets)
     local = phi[dofmap.cell_dofs]  # [m, 10]
     phi_q = local @ vals
-    grad = np.einsum("ea,alq,elI->eqI", local, dl, g)
+    grad = np.swapaxes((local @ dl.reshape(dl.shape[0], -1)).reshape(len(g), *dl.shape[1:]), 1, 2) @ g  # [e, q, I]
     size = np.linalg.norm(grad, axis=2)
     flat = size <= 1e-8 * max(float(np.median(size)), 1e-300)
     if flat.any():  # a point where ∇φ vanishes (a tet hugging one surface): the tet's P1 direction
