@@ -209,6 +209,8 @@ class MechanicsProblem:
         # inverse FE's Jacobian–vector products assemble on moved references, needs none of them)
         self._frames_t = np.ascontiguousarray(np.swapaxes(frames, -1, -2))
         self._grads_dv = self.cq.grads * self.cq.dV[..., None, None]
+        ne, nq, na, _ = self.cq.grads.shape
+        self._grads_by_dof = np.ascontiguousarray(self.cq.grads.transpose(0, 2, 1, 3)).reshape(ne, na, nq * 3)
         self._tangent_geometry = None
         B = self.material.exponent_weights()
         if self.mixed and fid.stabilization > 0:
@@ -323,8 +325,15 @@ class MechanicsProblem:
         return np.zeros(self.n_full)
 
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
+        """F = I + ∇u [e, q, 3, 3] at the cell quadrature points: one matmul per element over its dofs,
+        u_e [i, a] @ ∇φ [a, (q J)] (1.4 ms against 2.1 ms for a 3 × 3 product per point, 39,000 points)."""
         ue = u[self.dofmap.cell_dofs]  # [e, a, i]
-        return np.eye(3) + np.swapaxes(ue, -1, -2)[:, None] @ self.cq.grads
+        ne, nq = self.cq.dV.shape
+        grad_u = (np.swapaxes(ue, 1, 2) @ self._grads_by_dof).reshape(ne, 3, nq, 3)  # [e, i, q, J]
+        F = np.ascontiguousarray(grad_u.transpose(0, 2, 1, 3))
+        for i in range(3):
+            F[..., i, i] += 1.0
+        return F
 
     def min_jacobian(self, z_full: np.ndarray) -> float:
         u, _ = self.split(z_full)
@@ -562,16 +571,17 @@ def _surface_moments(dofmap, facets: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def _det_cofactor(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """J = det F and cof F = J F⁻ᵀ = ∂J/∂F for F [..., 3, 3]: the columns of cof F are the cross
     products of F's columns (f1 × f2, f2 × f0, f0 × f1), written out component by component (no
-    inversion: finite where F is singular). On 11,144 points: 0.44 ms, against 0.89 ms through
-    np.cross and 4.9 ms for np.linalg.det + inv."""
-    f = [[F[..., i, j] for j in range(3)] for i in range(3)]  # f[i][j] = F_ij
-    cof = np.empty(F.shape)
+    inversion: finite where F is singular), on the components laid out contiguously (points last).
+    On 39,000 points 1.3 ms, against 2.9 ms on strided views of F; np.linalg.det + inv took 4.9 ms on
+    11,144."""
+    f = np.moveaxis(F, (-2, -1), (0, 1)).copy()  # f[i, j] = F_ij over the points, contiguous
+    cof = np.empty_like(f)
     for col, (a, b) in enumerate(((1, 2), (2, 0), (0, 1))):  # column a × column b
-        cof[..., 0, col] = f[1][a] * f[2][b] - f[2][a] * f[1][b]
-        cof[..., 1, col] = f[2][a] * f[0][b] - f[0][a] * f[2][b]
-        cof[..., 2, col] = f[0][a] * f[1][b] - f[1][a] * f[0][b]
-    J = f[0][0] * cof[..., 0, 0] + f[1][0] * cof[..., 1, 0] + f[2][0] * cof[..., 2, 0]
-    return J, cof
+        np.subtract(f[1, a] * f[2, b], f[2, a] * f[1, b], out=cof[0, col])
+        np.subtract(f[2, a] * f[0, b], f[0, a] * f[2, b], out=cof[1, col])
+        np.subtract(f[0, a] * f[1, b], f[1, a] * f[0, b], out=cof[2, col])
+    J = f[0, 0] * cof[0, 0] + f[1, 0] * cof[1, 0] + f[2, 0] * cof[2, 0]
+    return J, np.ascontiguousarray(np.moveaxis(cof, (0, 1), (-2, -1)))
 
 
 def _skew(a: np.ndarray) -> np.ndarray:
