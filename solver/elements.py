@@ -140,7 +140,8 @@ def cell_quadrature(nodes: np.ndarray, tets: np.ndarray, order: int, quad_degree
 
 def _basis_gradients(dl: np.ndarray, g: np.ndarray) -> np.ndarray:
     """∇φ_a at the points [e, q, a, I] = Σ_l ∂φ_a/∂λ_l (q) ∇λ_l (e), from dl [a, l, q] and g [e, l, I]: one
-    matmul [e, I, l] @ [l, (q a)] (the three-operand einsum's loop took 3.5× as long on 1,000 tets)."""
+    matmul [e, I, l] @ [l, (q a)] (the three-operand einsum's loop took 3.6× as long at degree 2 and 1.4× at
+    degree 5, on 1,000 tets)."""
     na, nl, nq = dl.shape
     by_point = np.ascontiguousarray(dl.transpose(1, 2, 0)).reshape(nl, nq * na)
     grads = (np.swapaxes(g, 1, 2) @ by_point).reshape(len(g), 3, nq, na)
