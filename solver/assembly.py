@@ -204,11 +204,10 @@ class MechanicsProblem:
         if frames.shape[:2] != self.cq.dV.shape:
             raise ValueError(f"fibre frames {frames.shape[:2]} do not match quadrature {self.cq.dV.shape}")
         self.frames = frames
-        # fixed while the reference is: Rᵀ and ∇φ dV [e, q, a, I]; the tangent's own arrays are made
+        # fixed while the reference is: Rᵀ and ∇φ by dof [e, a, (q I)]; the tangent's own arrays are made
         # when a tangent is first assembled on this reference (`_tangent_arrays`: a residual alone, as
         # inverse FE's Jacobian–vector products assemble on moved references, needs none of them)
         self._frames_t = np.ascontiguousarray(np.swapaxes(frames, -1, -2))
-        self._grads_dv = self.cq.grads * self.cq.dV[..., None, None]
         ne, nq, na, _ = self.cq.grads.shape
         self._grads_by_dof = np.ascontiguousarray(self.cq.grads.transpose(0, 2, 1, 3)).reshape(ne, na, nq * 3)
         self._tangent_geometry = None
@@ -528,7 +527,7 @@ class MechanicsProblem:
             self._tangent_geometry = (
                 (self.cq.grads[:, :, None] @ voigt_frame_tensors(self.frames)).reshape(ne, nq, 6 * na, 3),
                 np.ascontiguousarray(np.swapaxes(self.cq.grads, -1, -2)),
-                np.ascontiguousarray(np.swapaxes(self._grads_dv, -1, -2)))
+                np.ascontiguousarray(np.swapaxes(self.cq.grads * self.cq.dV[..., None, None], -1, -2)))
         return self._tangent_geometry
 
 

@@ -129,9 +129,9 @@ def test_modified_newton_budget_counts_full_steps_not_refreshes(coarse_lv):
 
 def test_a_full_load_correction_goes_past_the_budget_while_it_halves_the_residual():
     """From a state past equilibrium in the law's stiff range (the converged displacement × 1.3 at the
-    soft corner), Newton's |R|∞ falls ~3× an iteration: 4 iterations do not converge it, but the
-    full-load correction of `inflate`, patient, goes on to the converged state (8 iterations, the
-    budget's 4 × PATIENT_BUDGET_FACTOR is the most)."""
+    soft corner), Newton's |R|∞ falls ~3× a full step: 4 iterations do not converge it, but the
+    full-load correction of `inflate`, patient, goes on to the converged state (6 iterations with the
+    doubled steps, 8 with full steps alone; the budget's 4 × PATIENT_BUDGET_FACTOR is the most)."""
     from solver.forward import SolveStats, _newton
     from solver.linear import SparseSolver
 
